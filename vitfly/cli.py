@@ -1,0 +1,76 @@
+"""The ``vitfly`` command.
+
+``fit``, ``validate``, ``test`` and ``predict`` go to LightningCLI (``vitfly.training_cli``);
+every other subcommand is one module under ``vitfly.commands`` with ``add_arguments(parser)``
+and ``run(args) -> int``. Modules are imported lazily so ``vitfly --help`` stays quick.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import sys
+
+from vitfly.errors import VitflyError
+
+LIGHTNING_SUBCOMMANDS = ("fit", "validate", "test", "predict")
+
+# subcommand -> (module under vitfly.commands, one-line help)
+SUBCOMMANDS: dict[str, tuple[str, str]] = {
+    "collect": ("collect", "fly the privileged expert and write trajectories to HDF5"),
+    "evaluate": ("evaluate", "fly a policy closed-loop and score it with the paper's metrics"),
+    "ablate": ("ablate", "train with and without the state input and compare (paper's ablation)"),
+    "benchmark-latency": ("benchmark_latency", "the paper's latency table for the model zoo"),
+    "import-legacy": ("import_legacy", "import the original PNG + data.csv dataset into HDF5"),
+    "convert-checkpoint": ("convert_checkpoint", "turn an original-project state dict into a vitfly checkpoint"),
+    "export": ("export", "export a network for deployment (ONNX)"),
+    "render": ("render", "draw a scene, a flown path and depth frames to PNG/GIF"),
+    "pipeline": ("pipeline", "the main job: collect if missing, train, fly against expert and straight, report"),
+}
+
+
+def _build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="vitfly",
+        description="ViTfly: end-to-end vision-based quadrotor obstacle avoidance. "
+        f"Training subcommands ({', '.join(LIGHTNING_SUBCOMMANDS)}) are LightningCLI: "
+        "see `vitfly fit --help`.",
+    )
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+    for name in LIGHTNING_SUBCOMMANDS:
+        sub.add_parser(name, help=f"LightningCLI {name} (vitfly {name} --config X.yaml)", add_help=False)
+    for name, (_, help_text) in SUBCOMMANDS.items():
+        sub.add_parser(name, help=help_text, add_help=False)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    argv = list(sys.argv[1:] if argv is None else argv)
+    parser = _build_parser()
+    if not argv or argv[0] not in (*LIGHTNING_SUBCOMMANDS, *SUBCOMMANDS):
+        parser.parse_args(argv or ["--help"])  # prints help or the "invalid choice" error
+        return 2
+    command, rest = argv[0], argv[1:]
+    try:
+        if command in LIGHTNING_SUBCOMMANDS:
+            from vitfly.training_cli import run_lightning_cli
+
+            return run_lightning_cli([command, *rest])
+        module = importlib.import_module(f"vitfly.commands.{SUBCOMMANDS[command][0]}")
+        sub_parser = argparse.ArgumentParser(
+            prog=f"vitfly {command}",
+            description=SUBCOMMANDS[command][1],
+            formatter_class=argparse.ArgumentDefaultsHelpFormatter,
+        )
+        module.add_arguments(sub_parser)
+        return int(module.run(sub_parser.parse_args(rest)) or 0)
+    except VitflyError as err:
+        print(f"vitfly: error: {err}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print("vitfly: interrupted; rerun the same command to resume", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())
