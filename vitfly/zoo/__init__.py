@@ -1,5 +1,15 @@
 """Model zoo: the paper's five networks plus ResNet-18, behind one registry."""
 
+from vitfly.zoo import convnet  # noqa: F401  (modules register their architectures on import)
+from vitfly.zoo.checkpoint import load_network, save_checkpoint
+from vitfly.zoo.legacy import load_legacy_checkpoint
 from vitfly.zoo.registry import create_model, list_models, register_model
 
-__all__ = ["create_model", "list_models", "register_model"]
+__all__ = [
+    "create_model",
+    "list_models",
+    "load_legacy_checkpoint",
+    "load_network",
+    "register_model",
+    "save_checkpoint",
+]
