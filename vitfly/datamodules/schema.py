@@ -1,0 +1,572 @@
+"""The HDF5 trajectory dataset, schema version 1: constants, writer, reader and validator.
+
+This module is the single owner of the on-disk format (DESIGN.md "Datasets")::
+
+    / attrs: schema="vitfly.trajectories", schema_version=1, image_shape=[60, 90],
+             depth_max_m=10.0, vitfly_version, config (JSON of how it was made)
+    /depth          uint8   (N, 60, 90)  round(255 * normalised depth); one compressed chunk per frame
+    /desired_speed  float32 (N,)         m/s
+    /quat           float32 (N, 4)       attitude, body to world, (w, x, y, z)
+    /position       float32 (N, 3)       m, world frame
+    /velocity       float32 (N, 3)       measured, m/s, world frame
+    /velocity_cmd   float32 (N, 3)       expert command (the label), m/s, world frame
+    /time           float64 (N,)         s since the trajectory's start
+    /collision      bool    (N,)         drone in contact with an obstacle
+    /traj_offsets   int64   (M+1,)       trajectory m is rows [off[m], off[m+1])
+    /trajectories/{env, seed, desired_speed, n_collisions, success}   (M,) each
+
+Crash safety (a writer killed with SIGKILL at any moment leaves a file holding exactly the
+trajectories whose ``append`` returned): the file is written in HDF5 SWMR mode, whose ordered
+metadata flushes keep the on-disk file consistent at every instant. ``append`` writes the rows and
+the per-trajectory table first, flushes, and only then extends ``/traj_offsets`` and flushes again:
+``/traj_offsets`` is the commit record, and rows beyond ``off[-1]`` are ignored by readers and
+dropped when a writer reopens the file. Depth chunks hold one frame each and telemetry is stored
+uncompressed, so no compressed chunk of a committed trajectory is ever rewritten (a rewritten
+compressed chunk moves, and its old space could be reused before the index points elsewhere).
+After a crash HDF5 refuses a plain open ("file is already open for write"); readers then open in
+SWMR-read mode, and a writer rebuilds the committed part into a fresh file and renames it over the
+old one (the old file stays untouched until the rename).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import fcntl
+import json
+import os
+from collections.abc import Iterator, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import h5py
+import numpy as np
+
+from vitfly import __version__
+from vitfly.errors import VitflyError
+
+SCHEMA_NAME = "vitfly.trajectories"
+SCHEMA_VERSION = 1
+IMAGE_SHAPE = (60, 90)
+DEFAULT_DEPTH_MAX_M = 10.0
+ENV_NAME_BYTES = 32  # fixed-length env names: SWMR writers cannot grow variable-length heaps safely
+
+# per-row datasets: name -> (dtype, trailing shape)
+ROW_FIELDS: dict[str, tuple[np.dtype, tuple[int, ...]]] = {
+    "depth": (np.dtype(np.uint8), IMAGE_SHAPE),
+    "desired_speed": (np.dtype(np.float32), ()),
+    "quat": (np.dtype(np.float32), (4,)),
+    "position": (np.dtype(np.float32), (3,)),
+    "velocity": (np.dtype(np.float32), (3,)),
+    "velocity_cmd": (np.dtype(np.float32), (3,)),
+    "time": (np.dtype(np.float64), ()),
+    "collision": (np.dtype(np.bool_), ()),
+}
+# per-trajectory table under /trajectories: name -> dtype
+TRAJ_FIELDS: dict[str, np.dtype] = {
+    "env": np.dtype(f"S{ENV_NAME_BYTES}"),
+    "seed": np.dtype(np.int64),
+    "desired_speed": np.dtype(np.float32),
+    "n_collisions": np.dtype(np.int64),
+    "success": np.dtype(np.bool_),
+}
+FLOAT_ROW_FIELDS = tuple(k for k, (dt, _) in ROW_FIELDS.items() if dt.kind == "f")
+TELEMETRY_CHUNK_ROWS = 4096
+DEPTH_COMPRESSION = {"compression": "gzip", "compression_opts": 4, "shuffle": False}
+
+
+def encode_depth(depth: np.ndarray) -> np.ndarray:
+    """Normalised depth in [0, 1] (float) -> uint8 round(255 * depth), clipped to [0, 255]."""
+    return np.clip(np.rint(np.asarray(depth, dtype=np.float32) * 255.0), 0, 255).astype(np.uint8)
+
+
+def decode_depth(depth_u8: np.ndarray) -> np.ndarray:
+    """uint8 stored depth -> float32 normalised depth in [0, 1] (metric depth / depth_max_m)."""
+    return np.asarray(depth_u8, dtype=np.float32) * np.float32(1.0 / 255.0)
+
+
+@dataclass
+class TrajectoryRecord:
+    """One flown trajectory of T control ticks, as written to and read from the dataset.
+
+    depth: uint8 (T, 60, 90) = round(255 * normalised depth); a float array in [0, 1] is encoded.
+    desired_speed: m/s, a scalar (constant over the flight) or (T,).
+    quat: (T, 4) attitude (w, x, y, z), body to world. position (T, 3) m, velocity (T, 3) m/s and
+    velocity_cmd (T, 3) m/s are world frame. time: (T,) s since the start. collision: bool (T,).
+    """
+
+    depth: np.ndarray
+    desired_speed: float | np.ndarray
+    quat: np.ndarray
+    position: np.ndarray
+    velocity: np.ndarray
+    velocity_cmd: np.ndarray
+    time: np.ndarray
+    collision: np.ndarray
+    env: str = "spheres"
+    seed: int = 0
+    n_collisions: int = 0
+    success: bool = False
+
+    @property
+    def length(self) -> int:
+        return int(np.asarray(self.depth).shape[0])
+
+    def row_arrays(self) -> dict[str, np.ndarray]:
+        """Validated per-row arrays in the on-disk dtypes; raises VitflyError naming the bad field."""
+        t = self.length
+        depth = np.asarray(self.depth)
+        if depth.dtype != np.uint8:
+            if depth.dtype.kind != "f":
+                raise VitflyError(f"TrajectoryRecord.depth: expected uint8 or float in [0, 1], got {depth.dtype}")
+            depth = encode_depth(depth)
+        speed = np.asarray(self.desired_speed, dtype=np.float32)
+        if speed.ndim == 0:
+            speed = np.full((t,), speed, dtype=np.float32)
+        arrays = {
+            "depth": depth,
+            "desired_speed": speed,
+            "quat": self.quat,
+            "position": self.position,
+            "velocity": self.velocity,
+            "velocity_cmd": self.velocity_cmd,
+            "time": self.time,
+            "collision": self.collision,
+        }
+        out = {}
+        for name, (dtype, tail) in ROW_FIELDS.items():
+            arr = np.asarray(arrays[name])
+            if arr.shape != (t, *tail):
+                raise VitflyError(f"TrajectoryRecord.{name}: expected shape {(t, *tail)}, got {arr.shape}")
+            arr = arr.astype(dtype, copy=False)
+            if dtype.kind == "f" and not np.isfinite(arr).all():
+                raise VitflyError(f"TrajectoryRecord.{name}: contains NaN or infinite values")
+            out[name] = arr
+        if t == 0:
+            raise VitflyError("TrajectoryRecord: a trajectory needs at least one step (depth has 0 frames)")
+        if len(self.env.encode()) > ENV_NAME_BYTES:
+            raise VitflyError(f"TrajectoryRecord.env: at most {ENV_NAME_BYTES} bytes, got {self.env!r}")
+        return out
+
+    def traj_row(self) -> dict[str, Any]:
+        """The /trajectories entry for this record."""
+        speed = np.asarray(self.desired_speed, dtype=np.float32)
+        return {
+            "env": self.env.encode(),
+            "seed": int(self.seed),
+            "desired_speed": float(speed if speed.ndim == 0 else speed.mean()),
+            "n_collisions": int(self.n_collisions),
+            "success": bool(self.success),
+        }
+
+
+# ---------------------------------------------------------------------------------------------
+# opening files (including ones left behind by a killed SWMR writer)
+
+
+def _is_crash_flag_error(err: OSError) -> bool:
+    return "already open for write" in str(err) or "consistency flags" in str(err)
+
+
+def _open_for_reading(path: Path) -> h5py.File:
+    """Open read-only; a file whose writer was killed is opened in SWMR-read mode instead."""
+    if not path.exists():
+        raise VitflyError(f"{path}: no such dataset file")
+    if not h5py.is_hdf5(str(path)):
+        raise VitflyError(f"{path}: not an HDF5 file (corrupt or wrong format); expected a vitfly dataset")
+    try:
+        return h5py.File(path, "r")
+    except OSError as err:
+        # left open for writing (a live or a killed SWMR writer): SWMR-read still sees every commit
+        try:
+            return h5py.File(path, "r", swmr=True)
+        except OSError:
+            raise VitflyError(f"{path}: cannot open HDF5 file ({err})") from None
+
+
+def _check_not_locked(path: Path) -> None:
+    """Fail if another live process holds the file (HDF5 takes an flock while writing)."""
+    with open(path, "rb") as fh:
+        try:
+            fcntl.flock(fh, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError:
+            raise VitflyError(f"{path}: the dataset is being written by another process") from None
+        fcntl.flock(fh, fcntl.LOCK_UN)
+
+
+def _tmp_path(path: Path) -> Path:
+    return path.with_name(f".{path.name}.tmp-{os.getpid()}")
+
+
+# ---------------------------------------------------------------------------------------------
+# validation
+
+
+def _attr_str(value: Any) -> str:
+    return value.decode() if isinstance(value, bytes) else str(value)
+
+
+def _show(value: Any) -> str:
+    """An attribute value as a user reads it (no numpy reprs)."""
+    if isinstance(value, np.ndarray | np.generic):
+        value = value.tolist()
+    return repr(_attr_str(value) if isinstance(value, bytes) else value)
+
+
+def validate_file(f: h5py.File, path: Path, *, allow_empty: bool = False) -> int:
+    """Check schema, version, image shape, dataset dtypes/shapes and commit records.
+
+    Returns the number of committed trajectories M. Raises VitflyError with one line naming the
+    file and the field. NaN checks over the telemetry are done by ``check_finite``.
+    """
+    schema = f.attrs.get("schema")
+    if schema is None or _attr_str(schema) != SCHEMA_NAME:
+        raise VitflyError(
+            f"{path}: attribute 'schema' is {_show(schema)}, expected {SCHEMA_NAME!r} (not a vitfly dataset)"
+        )
+    version = f.attrs.get("schema_version")
+    if version is None or int(version) != SCHEMA_VERSION:
+        raise VitflyError(
+            f"{path}: attribute 'schema_version' is {_show(version)}, this vitfly reads version {SCHEMA_VERSION}"
+        )
+    shape = tuple(int(v) for v in np.atleast_1d(f.attrs.get("image_shape", [])))
+    if shape != IMAGE_SHAPE:
+        raise VitflyError(f"{path}: attribute 'image_shape' is {list(shape)}, expected {list(IMAGE_SHAPE)}")
+    depth_max = f.attrs.get("depth_max_m")
+    if depth_max is None or not np.isfinite(depth_max) or float(depth_max) <= 0:
+        raise VitflyError(
+            f"{path}: attribute 'depth_max_m' is {_show(depth_max)}, expected a positive number of metres"
+        )
+    if "traj_offsets" not in f:
+        raise VitflyError(f"{path}: dataset '/traj_offsets' is missing")
+    offsets = f["traj_offsets"]
+    if offsets.dtype != np.int64 or offsets.ndim != 1 or offsets.shape[0] < 1:
+        raise VitflyError(f"{path}: dataset '/traj_offsets' must be int64 (M+1,), got {offsets.dtype} {offsets.shape}")
+    off = offsets[...]
+    m = off.shape[0] - 1
+    n_rows = None
+    for name, (dtype, tail) in ROW_FIELDS.items():
+        if name not in f:
+            raise VitflyError(f"{path}: dataset '/{name}' is missing")
+        ds = f[name]
+        if ds.dtype != dtype:
+            raise VitflyError(f"{path}: dataset '/{name}' has dtype {ds.dtype}, expected {dtype}")
+        if ds.shape[1:] != tail:
+            expected = "(N, " + ", ".join(map(str, tail)) + ")" if tail else "(N,)"
+            raise VitflyError(f"{path}: dataset '/{name}' has shape {ds.shape}, expected {expected}")
+        n_rows = ds.shape[0] if n_rows is None else min(n_rows, ds.shape[0])
+    if off[0] != 0 or np.any(np.diff(off) <= 0) or off[-1] > n_rows:
+        raise VitflyError(
+            f"{path}: dataset '/traj_offsets' is not an increasing list of row offsets from 0 to <= {n_rows}"
+        )
+    for name, dtype in TRAJ_FIELDS.items():
+        key = f"trajectories/{name}"
+        if key not in f:
+            raise VitflyError(f"{path}: dataset '/{key}' is missing")
+        ds = f[key]
+        if ds.dtype.kind != dtype.kind or ds.ndim != 1 or ds.shape[0] < m:
+            raise VitflyError(
+                f"{path}: dataset '/{key}' must be {dtype} with at least {m} entries, got {ds.dtype} {ds.shape}"
+            )
+    if m == 0 and not allow_empty:
+        raise VitflyError(f"{path}: dataset is empty ('/traj_offsets' holds no trajectory)")
+    return m
+
+
+def check_finite(f: h5py.File, path: Path, n_rows: int, block: int = 1 << 18) -> None:
+    """Raise VitflyError naming the first float telemetry field (and row) that holds NaN or inf."""
+    for name in FLOAT_ROW_FIELDS:
+        ds = f[name]
+        for start in range(0, n_rows, block):
+            values = ds[start : min(start + block, n_rows)]
+            bad = ~np.isfinite(values)
+            if bad.any():
+                row = start + int(np.argwhere(bad.reshape(bad.shape[0], -1).any(axis=1))[0, 0])
+                raise VitflyError(f"{path}: dataset '/{name}' holds NaN or infinite values (first at row {row})")
+
+
+# ---------------------------------------------------------------------------------------------
+# reader
+
+
+class TrajectoryFile:
+    """Read access to a validated dataset: ``len(tf)`` trajectories, ``tf[m]`` a TrajectoryRecord.
+
+    Reads stream from disk; nothing is preloaded except ``/traj_offsets`` and the per-trajectory
+    table. Use as a context manager or call ``close()``. Not shareable across processes: each
+    DataLoader worker opens its own (see ``vitfly.datamodules.dataset``).
+    """
+
+    def __init__(self, path: str | os.PathLike, *, check_values: bool = True):
+        self.path = Path(path)
+        self._file = _open_for_reading(self.path)
+        try:
+            m = validate_file(self._file, self.path)
+            self.offsets = self._file["traj_offsets"][...]
+            if check_values:
+                check_finite(self._file, self.path, int(self.offsets[-1]))
+            self.table = {name: self._file[f"trajectories/{name}"][:m] for name in TRAJ_FIELDS}
+        except BaseException:
+            self._file.close()
+            raise
+        self.depth_max_m = float(self._file.attrs["depth_max_m"])
+        self.config = json.loads(_attr_str(self._file.attrs.get("config", "{}")) or "{}")
+        self.vitfly_version = _attr_str(self._file.attrs.get("vitfly_version", ""))
+
+    def __len__(self) -> int:
+        return len(self.offsets) - 1
+
+    @property
+    def lengths(self) -> np.ndarray:
+        """(M,) number of steps in each trajectory."""
+        return np.diff(self.offsets)
+
+    @property
+    def num_rows(self) -> int:
+        return int(self.offsets[-1])
+
+    def read(self, m: int, fields: Sequence[str] = tuple(ROW_FIELDS), start: int = 0, stop: int | None = None):
+        """Rows [start, stop) of trajectory m as {field: array} in on-disk dtypes (depth stays uint8)."""
+        if not 0 <= m < len(self):
+            raise IndexError(f"trajectory {m} out of range [0, {len(self)})")
+        lo, hi = int(self.offsets[m]), int(self.offsets[m + 1])
+        stop = hi - lo if stop is None else stop
+        return {name: self._file[name][lo + start : lo + stop] for name in fields}
+
+    def meta(self, m: int) -> dict[str, Any]:
+        """The /trajectories entry of trajectory m (env as str)."""
+        row = {name: self.table[name][m] for name in TRAJ_FIELDS}
+        row["env"] = row["env"].decode()
+        return {k: (v.item() if isinstance(v, np.generic) else v) for k, v in row.items()}
+
+    def __getitem__(self, m: int) -> TrajectoryRecord:
+        meta = self.meta(m)
+        del meta["desired_speed"]  # the per-row speeds are the record's
+        return TrajectoryRecord(**self.read(m), **meta)
+
+    def __iter__(self) -> Iterator[TrajectoryRecord]:
+        for m in range(len(self)):
+            yield self[m]
+
+    def close(self) -> None:
+        self._file.close()
+
+    def __enter__(self) -> TrajectoryFile:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+
+def open_trajectories(path: str | os.PathLike, *, check_values: bool = True) -> TrajectoryFile:
+    """Open and validate a vitfly dataset (schema, version, shapes, dtypes, NaN telemetry, non-empty).
+
+    Bad files raise VitflyError with one line naming the file and the field.
+    """
+    return TrajectoryFile(path, check_values=check_values)
+
+
+# ---------------------------------------------------------------------------------------------
+# writer
+
+
+def _create_layout(f: h5py.File, config: dict, depth_max_m: float) -> None:
+    f.attrs["schema"] = SCHEMA_NAME
+    f.attrs["schema_version"] = SCHEMA_VERSION
+    f.attrs["image_shape"] = np.asarray(IMAGE_SHAPE, dtype=np.int64)
+    f.attrs["depth_max_m"] = float(depth_max_m)
+    f.attrs["vitfly_version"] = __version__
+    f.attrs["config"] = json.dumps(config, sort_keys=True, default=str)
+    for name, (dtype, tail) in ROW_FIELDS.items():
+        if name == "depth":
+            f.create_dataset(name, (0, *tail), maxshape=(None, *tail), dtype=dtype, chunks=(1, *tail),
+                             **DEPTH_COMPRESSION)
+        else:
+            f.create_dataset(name, (0, *tail), maxshape=(None, *tail), dtype=dtype,
+                             chunks=(TELEMETRY_CHUNK_ROWS, *tail))
+    f.create_dataset("traj_offsets", data=np.zeros(1, dtype=np.int64), maxshape=(None,), chunks=(1024,))
+    group = f.create_group("trajectories")
+    for name, dtype in TRAJ_FIELDS.items():
+        group.create_dataset(name, (0,), maxshape=(None,), dtype=dtype, chunks=(1024,))
+
+
+def _rebuild_committed(src_path: Path, dst_path: Path) -> None:
+    """Copy the committed trajectories of a crashed file into a fresh file (depth chunks copied raw)."""
+    with h5py.File(src_path, "r", swmr=True) as src:
+        validate_file(src, src_path, allow_empty=True)
+        off = src["traj_offsets"][...]
+        m, n = len(off) - 1, int(off[-1])
+        config = json.loads(_attr_str(src.attrs.get("config", "{}")) or "{}")
+        with h5py.File(dst_path, "w", libver="latest") as dst:
+            _create_layout(dst, config, float(src.attrs["depth_max_m"]))
+            for key in ("schema", "vitfly_version"):
+                dst.attrs[key] = src.attrs[key]
+            for name in ROW_FIELDS:
+                dst[name].resize(n, axis=0)
+            src_depth, dst_depth = src["depth"].id, dst["depth"].id
+            for i in range(n):
+                mask, chunk = src_depth.read_direct_chunk((i, 0, 0))
+                dst_depth.write_direct_chunk((i, 0, 0), chunk, mask)
+            for name in ROW_FIELDS:
+                if name != "depth":
+                    for start in range(0, n, 1 << 20):
+                        stop = min(start + (1 << 20), n)
+                        dst[name][start:stop] = src[name][start:stop]
+            for name in TRAJ_FIELDS:
+                key = f"trajectories/{name}"
+                dst[key].resize(m, axis=0)
+                dst[key][:] = src[key][:m]
+            dst["traj_offsets"].resize(m + 1, axis=0)
+            dst["traj_offsets"][:] = off
+
+
+class TrajectoryWriter:
+    """Create a dataset, or reopen one to append to it (resume after an interruption).
+
+    ``append(rec)`` is atomic with respect to SIGKILL: after a crash, reopening gives a readable
+    file holding exactly the trajectories whose ``append`` returned. ``config`` (a JSON-able dict
+    of how the data was made) is stored on creation; on reopen the stored one is kept, and
+    ``depth_max_m`` must match the file's.
+    """
+
+    def __init__(self, path: str | os.PathLike, config: dict | None = None, depth_max_m: float = DEFAULT_DEPTH_MAX_M):
+        self.path = Path(path)
+        self.depth_max_m = float(depth_max_m)
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        for stale in self.path.parent.glob(f".{self.path.name}.tmp-*"):
+            with contextlib.suppress(OSError):
+                pid = int(stale.name.rsplit("-", 1)[1])
+                if pid == os.getpid() or not _pid_alive(pid):
+                    stale.unlink()
+        if self.path.exists():
+            self._reopen()
+        else:
+            tmp = _tmp_path(self.path)
+            try:
+                with h5py.File(tmp, "w", libver="latest") as f:
+                    _create_layout(f, config or {}, self.depth_max_m)
+                os.replace(tmp, self.path)
+            finally:
+                tmp.unlink(missing_ok=True)
+        self._file = h5py.File(self.path, "r+", libver="latest")
+        self._file.swmr_mode = True
+        off = self._file["traj_offsets"]
+        self._num = off.shape[0] - 1
+        self._rows = int(off[-1])
+        self._seeds = [int(s) for s in self._file["trajectories/seed"][: self._num]]
+        self.config = json.loads(_attr_str(self._file.attrs.get("config", "{}")) or "{}")
+
+    def _reopen(self) -> None:
+        if not h5py.is_hdf5(str(self.path)):
+            raise VitflyError(f"{self.path}: exists but is not an HDF5 file; move it away or choose another --out")
+        _check_not_locked(self.path)
+        try:
+            f = h5py.File(self.path, "r+", libver="latest")
+        except OSError as err:
+            if not _is_crash_flag_error(err):
+                raise VitflyError(f"{self.path}: cannot open HDF5 file for appending ({err})") from None
+            # the previous writer was killed: rebuild its committed part, then swap files atomically
+            tmp = _tmp_path(self.path)
+            try:
+                _rebuild_committed(self.path, tmp)
+                os.replace(tmp, self.path)
+            finally:
+                tmp.unlink(missing_ok=True)
+            f = h5py.File(self.path, "r+", libver="latest")
+        with f:
+            validate_file(f, self.path, allow_empty=True)
+            stored = float(f.attrs["depth_max_m"])
+            if not np.isclose(stored, self.depth_max_m):
+                raise VitflyError(
+                    f"{self.path}: attribute 'depth_max_m' is {stored} m but this writer uses {self.depth_max_m} m"
+                )
+            # rows beyond the last commit belong to an interrupted append: drop them
+            off = f["traj_offsets"]
+            m, n = off.shape[0] - 1, int(off[-1])
+            for name in ROW_FIELDS:
+                if f[name].shape[0] != n:
+                    f[name].resize(n, axis=0)
+            for name in TRAJ_FIELDS:
+                if f[f"trajectories/{name}"].shape[0] != m:
+                    f[f"trajectories/{name}"].resize(m, axis=0)
+
+    @property
+    def num_trajectories(self) -> int:
+        """Trajectories committed so far."""
+        return self._num
+
+    def seeds(self) -> list[int]:
+        """Seeds of the committed trajectories, in order (to skip them on resume)."""
+        return list(self._seeds)
+
+    def append(self, rec: TrajectoryRecord) -> None:
+        """Write one trajectory and commit it; returns only once it is durable against SIGKILL."""
+        if self._file is None:
+            raise VitflyError(f"{self.path}: writer is closed")
+        rows = rec.row_arrays()
+        meta = rec.traj_row()
+        t = rec.length
+        lo, hi = self._rows, self._rows + t
+        f = self._file
+        for name, arr in rows.items():
+            ds = f[name]
+            if ds.shape[0] < hi:
+                ds.resize(hi, axis=0)
+            ds[lo:hi] = arr
+        m = self._num
+        for name, value in meta.items():
+            ds = f[f"trajectories/{name}"]
+            if ds.shape[0] < m + 1:
+                ds.resize(m + 1, axis=0)
+            ds[m] = value
+        f.flush()
+        # the commit: readers see trajectory m only once traj_offsets has grown
+        off = f["traj_offsets"]
+        off.resize(m + 2, axis=0)
+        off[m + 1] = hi
+        f.flush()
+        self._num, self._rows = m + 1, hi
+        self._seeds.append(int(meta["seed"]))
+
+    def close(self) -> None:
+        if self._file is not None:
+            self._file.close()
+            self._file = None
+
+    def __enter__(self) -> TrajectoryWriter:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    def __del__(self):
+        with contextlib.suppress(Exception):
+            self.close()
+
+
+def _pid_alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    return True
+
+
+__all__ = [
+    "DEFAULT_DEPTH_MAX_M",
+    "IMAGE_SHAPE",
+    "ROW_FIELDS",
+    "SCHEMA_NAME",
+    "SCHEMA_VERSION",
+    "TRAJ_FIELDS",
+    "TrajectoryFile",
+    "TrajectoryRecord",
+    "TrajectoryWriter",
+    "check_finite",
+    "decode_depth",
+    "encode_depth",
+    "open_trajectories",
+    "validate_file",
+]
