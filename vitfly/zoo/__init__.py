@@ -1,6 +1,7 @@
 """Model zoo: the paper's five networks plus ResNet-18, behind one registry."""
 
-from vitfly.zoo import convnet  # noqa: F401  (modules register their architectures on import)
+# the architecture modules register their builders on import
+from vitfly.zoo import convnet, lstmnet, resnet18, unet_lstm, vit, vit_lstm  # noqa: F401
 from vitfly.zoo.checkpoint import load_network, save_checkpoint
 from vitfly.zoo.legacy import load_legacy_checkpoint
 from vitfly.zoo.registry import create_model, list_models, register_model
