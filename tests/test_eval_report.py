@@ -1,0 +1,135 @@
+"""Records, aggregation, reports and plots on synthetic trials (paths built here, metrics computed for real)."""
+
+import csv
+import json
+import math
+
+import numpy as np
+import pytest
+
+from vitfly.eval import plots, records
+from vitfly.eval.aggregate import summarize
+from vitfly.eval.metrics import trial_metrics
+from vitfly.eval.report import write_reports
+
+
+def make_record(policy, env, speed, trial, *, swerve=1.0, hit_ticks=(), seed=0, goal=True):
+    """A synthetic trial: forward flight at ``speed`` with a lateral swerve; contact on ``hit_ticks``."""
+    dt, n = 1 / 30, 40
+    t = np.arange(n) * dt
+    pos = np.zeros((n, 3))
+    pos[:, 0] = speed * t * (60.0 / (speed * t[-1]) if goal else 0.5)
+    pos[:, 1] = swerve * np.sin(np.linspace(0, np.pi, n))
+    pos[:, 2] = 3.5
+    vel = np.gradient(pos, dt, axis=0)
+    contact = np.zeros(n, bool)
+    contact[list(hit_ticks)] = True
+    path = records.round_path(t, pos, vel, vel, contact)
+    arr = {k: np.asarray(v) for k, v in path.items()}
+    m = trial_metrics(arr["time"], arr["position"], arr["velocity"], arr["command"], arr["contact"],
+                      desired_speed_mps=speed, goal_x_m=60.0, reached_goal=goal, processing_ms=1.5)
+    return records.TrialRecord(policy=policy, env=env, speed=speed, trial=trial, scene_seed=seed,
+                               success=m.success, reached_goal=goal, end_reason="goal" if goal else "timeout",
+                               metrics=m.to_dict(), path=path)
+
+
+def sweep(policy="expert", env="spheres"):
+    recs = []
+    for speed in (3.0, 5.0):
+        recs.append(make_record(policy, env, speed, 0, seed=11, hit_ticks=[5, 6, 20]))  # 2 collisions
+        recs.append(make_record(policy, env, speed, 1, seed=12))
+        recs.append(make_record(policy, env, speed, 2, seed=13, goal=False))
+    return recs
+
+
+def test_record_round_trip_and_recomputed_metrics(tmp_path):
+    rec = make_record("expert", "spheres", 3.0, 0, hit_ticks=[5, 6])
+    f = tmp_path / "trials.jsonl"
+    records.append_record(f, rec)
+    (back,) = records.read_records(f)
+    assert back.key == rec.key and back.success == rec.success
+    assert back.metrics["collisions"] == 1
+    assert back.metrics["time_in_collision_s"] == pytest.approx(2 / 30, rel=1e-4)  # times stored to 1 us
+    # metrics recomputed from the stored path equal the stored metrics
+    arr = back.path_arrays()
+    again = trial_metrics(arr["time"], arr["position"], arr["velocity"], arr["command"], arr["contact"],
+                          desired_speed_mps=3.0, goal_x_m=60.0, reached_goal=True, processing_ms=1.5).to_dict()
+    for k, v in again.items():
+        assert (math.isnan(v) and math.isnan(back.metrics[k])) or v == back.metrics[k], k
+    # undefined metrics are JSON null, not NaN
+    line = json.loads(f.read_text())
+    assert line["metrics"]["time_to_goal_s"] is not None
+    assert make_record("expert", "spheres", 3.0, 1).to_json().count("NaN") == 0
+
+
+def test_torn_last_line_is_skipped_and_cut_before_the_next_append(tmp_path):
+    f = tmp_path / "trials.jsonl"
+    a, b, c = (make_record("expert", "spheres", 3.0, i) for i in range(3))
+    records.append_record(f, a)
+    records.append_record(f, b)
+    data = f.read_bytes()
+    f.write_bytes(data[: len(data) - 200])  # kill -9 in the middle of writing b
+    assert [r.trial for r in records.read_records(f)] == [0]
+    records.append_record(f, c)
+    assert [r.trial for r in records.read_records(f)] == [0, 2]
+    assert f.read_bytes().count(b"\n") == 2
+
+
+def test_corrupt_line_names_file_and_line(tmp_path):
+    f = tmp_path / "trials.jsonl"
+    f.write_text('{"schema": "something else"}\n')
+    with pytest.raises(Exception, match=r"trials.jsonl: line 1.*schema"):
+        records.read_records(f)
+
+
+def test_summary_rows_and_csv(tmp_path):
+    recs = sweep("expert") + sweep("straight")
+    rows = summarize(recs)
+    assert [(r["policy"], r["speed"]) for r in rows] == [("expert", 3.0), ("expert", 5.0), ("straight", 3.0),
+                                                          ("straight", 5.0)]
+    r = rows[0]
+    assert r["trials"] == 3
+    assert r["success_rate"] == pytest.approx(1 / 3)  # trial 1 only: 0 hit, 2 not at goal
+    assert r["collisions_mean"] == pytest.approx(2 / 3)  # 2, 0, 0
+    assert r["collisions_std"] == pytest.approx(np.std([2, 0, 0], ddof=1))
+    assert r["time_in_collision_mean"] == pytest.approx(1.5 / 30, rel=1e-4)  # 3 ticks / 2 entries, one trial defines it
+    paths = write_reports(tmp_path, rows)
+    with open(paths["csv"]) as fh:
+        table = list(csv.DictReader(fh))
+    assert len(table) == 4
+    for col in ("policy", "env", "speed", "trials", "success_rate", "collisions_mean", "time_in_collision_mean",
+                "energy_cost_mean", "cmd_acc_mean"):
+        assert col in table[0]
+    assert float(table[0]["energy_cost_mean"]) > 0
+    assert table[2]["time_in_collision_std"] == "0.0"
+    md = paths["markdown"].read_text()
+    assert "| expert | spheres | 3 | 3 | 33 |" in md
+    assert md.startswith("| policy") and md.count("\n| ") == 4  # 4 rows under the header
+
+
+def test_shard_files_merge(tmp_path):
+    a, b = sweep("expert")[:3], sweep("expert")[2:]
+    for rec in a:
+        records.append_record(tmp_path / "trials.jsonl", rec)
+    for rec in b:
+        records.append_record(tmp_path / "trials-part2.jsonl", rec)
+    merged = records.read_sweep(tmp_path)
+    assert len(merged) == 6
+    assert len({r.key for r in merged}) == 6
+
+
+def test_standard_plots_are_written(tmp_path):
+    from types import SimpleNamespace
+
+    recs = sweep("expert") + sweep("convnet") + sweep("straight") + sweep("expert", "trees")
+    rows = summarize(recs)
+    scene = SimpleNamespace(spheres=np.array([[20.0, 1.0, 3.5, 1.0]]), cylinders=np.array([[40.0, -2, 0, 6, 0.3]]),
+                            boxes=np.zeros((0, 6)))
+    written = plots.write_standard_plots(tmp_path, rows, recs, scene_loader=lambda env, preset, seed: scene)
+    assert set(written) >= {"rates_vs_speed", "time_in_collision_vs_speed", "energy_vs_speed", "paths_spheres",
+                            "paths_trees"}
+    for p in written.values():
+        assert p.exists() and p.stat().st_size > 10_000
+        assert p.read_bytes()[:4] == b"\x89PNG"
+    seed, same_scene = plots.scene_for_paths(recs, "spheres")
+    assert seed == 11 and {r.policy for r in same_scene} == {"expert", "convnet", "straight"}
