@@ -1,0 +1,113 @@
+"""A zoo network flown as a simulator policy: one batched forward pass per control tick.
+
+The simulator's rollout engine steps N scenes in lockstep and calls ``policy(obs)`` once per tick
+(``obs``: depth (N, 60, 90) in [0, 1], desired_speed (N,) m/s, quat (N, 4) (w, x, y, z), active
+(N,) bool); the policy returns world-frame velocity commands (N, 3) in m/s. This adapter keeps one
+recurrent state per env, zeroed by ``reset`` at the start of each trial, runs the network only on
+the active envs, and turns the network output into a command as the paper deploys it
+(``deploy_command``).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+
+import numpy as np
+import torch
+from torch import nn
+
+# (depth (B,1,1,60,90), desired_speed (B,1,1), quat (B,1,4), hidden | None) -> (out (B,1,3), hidden | None)
+StepFn = Callable[..., tuple]
+
+
+def deploy_command(raw: np.ndarray, desired_speed_mps: np.ndarray) -> np.ndarray:
+    """Network output (N, 3) (velocity / desired speed) -> world-frame command (N, 3) in m/s.
+
+    Paper deployment: clip the x part to [-1, 1], normalise to a unit vector, multiply by the
+    desired speed. A zero output (no direction at all) flies straight ahead.
+    """
+    v = np.array(raw, dtype=np.float64).reshape(-1, 3)
+    v[:, 0] = np.clip(v[:, 0], -1.0, 1.0)
+    norm = np.linalg.norm(v, axis=1, keepdims=True)
+    unit = np.where(norm > 1e-9, v / np.maximum(norm, 1e-12), np.array([1.0, 0.0, 0.0]))
+    return unit * np.asarray(desired_speed_mps, dtype=np.float64).reshape(-1, 1)
+
+
+def _obs_field(obs, name: str):
+    return obs[name] if isinstance(obs, dict) else getattr(obs, name)
+
+
+def _select_hidden(hidden, idx: torch.Tensor):
+    return None if hidden is None else tuple(h[:, idx] for h in hidden)
+
+
+class LearnedPolicy:
+    """Sim policy protocol (``reset(num_envs)``, ``__call__(obs) -> (N, 3)``) over a zoo network.
+
+    ``step_fn`` replaces the eager network call (e.g. an ONNX Runtime session with the same
+    inputs and outputs); by default the network runs under ``torch.no_grad`` on ``device`` (not
+    inference_mode: the per-env state is updated in place between calls).
+    """
+
+    def __init__(self, net: nn.Module, device: str | torch.device = "cpu", step_fn: StepFn | None = None):
+        self.net = net.eval().to(device)
+        self.device = torch.device(device)
+        self.is_recurrent = bool(getattr(net, "is_recurrent", False))
+        self._step = step_fn or self._eager_step
+        self._hidden = None
+        self.num_envs = 0
+
+    def _eager_step(self, depth, speed, quat, hidden):
+        with torch.no_grad():
+            return self.net(depth, speed, quat, hidden)
+
+    def _zero_hidden(self, n: int):
+        init = getattr(self.net, "initial_hidden", None)
+        return init(n, device=self.device) if (self.is_recurrent and init is not None) else None
+
+    def reset(self, num_envs: int) -> None:
+        """Start a new trial in every env: zero recurrent state."""
+        self.num_envs = int(num_envs)
+        self._hidden = self._zero_hidden(self.num_envs)
+
+    def reset_envs(self, env_indices: Sequence[int]) -> None:
+        """Start a new trial in some envs only (their recurrent state is zeroed)."""
+        if self._hidden is not None and len(env_indices):
+            idx = torch.as_tensor(list(env_indices), dtype=torch.long, device=self.device)
+            for h in self._hidden:
+                h[:, idx] = 0.0
+
+    def raw_output(self, obs) -> np.ndarray:
+        """Network output (N, 3) for all envs (zeros for inactive ones); advances the recurrent state."""
+        depth = np.asarray(_obs_field(obs, "depth"), dtype=np.float32)
+        n = depth.shape[0]
+        if n != self.num_envs:
+            raise ValueError(f"policy was reset for {self.num_envs} envs but got observations of {n}")
+        active = np.asarray(_obs_field(obs, "active"), dtype=bool) if _has(obs, "active") else np.ones(n, bool)
+        out = np.zeros((n, 3), dtype=np.float64)
+        if not active.any():
+            return out
+        idx_np = np.flatnonzero(active)
+        idx = torch.as_tensor(idx_np, dtype=torch.long, device=self.device)
+        d = torch.from_numpy(depth[idx_np]).to(self.device)[:, None, None]
+        s = torch.as_tensor(np.asarray(_obs_field(obs, "desired_speed"), np.float32)[idx_np], device=self.device)
+        q = torch.as_tensor(np.asarray(_obs_field(obs, "quat"), np.float32)[idx_np], device=self.device)
+        all_active = len(idx_np) == n
+        hidden_in = self._hidden if all_active else _select_hidden(self._hidden, idx)
+        pred, hidden_out = self._step(d, s.reshape(-1, 1, 1), q.reshape(-1, 1, 4), hidden_in)
+        if self._hidden is not None and hidden_out is not None:
+            if all_active:
+                self._hidden = tuple(h.clone() for h in hidden_out)
+            else:
+                for h, h_new in zip(self._hidden, hidden_out, strict=True):
+                    h[:, idx] = h_new
+        out[idx_np] = torch.as_tensor(pred).reshape(-1, 3).double().cpu().numpy()
+        return out
+
+    def __call__(self, obs) -> np.ndarray:
+        raw = self.raw_output(obs)
+        return deploy_command(raw, np.asarray(_obs_field(obs, "desired_speed"), dtype=np.float64))
+
+
+def _has(obs, name: str) -> bool:
+    return name in obs if isinstance(obs, dict) else hasattr(obs, name)
