@@ -1,0 +1,222 @@
+"""Forward depth camera by exact ray casting of the scene's primitive shapes (numpy).
+
+The camera sits at the body origin and looks along body +x; it rotates with the body. Image row 0
+is the top (body +z), column 0 the left (body +y); pixels are square, so the vertical field of view
+follows from the horizontal one and the aspect ratio. A pixel holds planar depth (distance along
+the optical axis, as a depth camera reports it) divided by ``max_range_m`` and clipped to 1;
+nothing within range reads 1, and 0 is reserved for "no reading" (dropout).
+
+Only shapes that can be seen are cast against: spheres and tree canopies within range and inside
+the view frustum, trunks and walls within range, and the ground plane z = 0 (optional).
+
+Example::
+
+    camera = DepthCamera(CameraConfig())
+    depth = camera.render(scene, position=(0, 0, 3.5), rotation=np.eye(3))   # (60, 90) float32
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from vitfly.sim.scenes import Scene
+
+
+@dataclass(frozen=True)
+class CameraConfig:
+    """Depth camera settings (m, degrees)."""
+
+    height: int = 60
+    width: int = 90
+    horizontal_fov_deg: float = 90.0
+    max_range_m: float = 10.0  # normalisation: stored depth = metric depth / max_range_m, clipped to 1
+    render_ground: bool = True  # the plane z = 0
+    noise_std_m: float = 0.0  # additive Gaussian noise on metric depth (domain randomisation)
+    dropout_prob: float = 0.0  # probability that a pixel reads 0 ("no reading")
+
+
+class DepthCamera:
+    """Renders normalised depth images of a :class:`~vitfly.sim.scenes.Scene`.
+
+    Each visible shape is cast only against the pixels inside its projected bounding rectangle,
+    so the cost grows with the image area the shapes cover, not with pixels x shapes.
+    """
+
+    def __init__(self, config: CameraConfig | None = None):
+        self.config = cfg = config or CameraConfig()
+        self._tan_h = math.tan(math.radians(cfg.horizontal_fov_deg) / 2)
+        self._tan_v = self._tan_h * cfg.height / cfg.width
+        u = self._tan_h * (1.0 - 2.0 * (np.arange(cfg.width) + 0.5) / cfg.width)  # +y (left) at column 0
+        v = self._tan_v * (1.0 - 2.0 * (np.arange(cfg.height) + 0.5) / cfg.height)  # +z (up) at row 0
+        # body-frame ray directions (1, u, v): unit forward component, so the ray parameter is planar depth
+        self._v, self._u = np.meshgrid(v, u, indexing="ij")  # (H, W) each
+        self._a = 1.0 + self._u**2 + self._v**2  # squared ray length
+        # a pixel's ray reaches at most this far (m) before planar depth exceeds the range
+        self._reach = cfg.max_range_m * math.sqrt(float(self._a.max()))
+        # inward unit normals of the four frustum side planes (body frame), for culling
+        planes = np.array(
+            [[self._tan_h, -1.0, 0.0], [self._tan_h, 1.0, 0.0], [self._tan_v, 0.0, -1.0], [self._tan_v, 0.0, 1.0]]
+        )
+        self._frustum = planes / np.linalg.norm(planes, axis=1, keepdims=True)
+
+    @property
+    def vertical_fov_deg(self) -> float:
+        return math.degrees(2 * math.atan(self._tan_v))
+
+    def metric_depth(self, scene: Scene, position, rotation: np.ndarray) -> np.ndarray:
+        """Planar depth in metres (H, W) float64, ``inf`` where nothing is hit within range.
+
+        position: (3,) camera position, world frame (m). rotation: (3, 3) body-to-world matrix.
+        """
+        cfg = self.config
+        pos = np.asarray(position, dtype=np.float64).reshape(3)
+        rot = np.asarray(rotation, dtype=np.float64).reshape(3, 3)
+        depth = np.full((cfg.height, cfg.width), np.inf)
+        if len(scene.spheres):
+            self._cast_spheres(depth, scene.spheres, pos, rot)
+        if len(scene.cylinders) or len(scene.boxes) or cfg.render_ground:
+            # world-frame ray directions, (H, W) per component
+            dirs = [rot[i, 0] + rot[i, 1] * self._u + rot[i, 2] * self._v for i in range(3)]
+            if len(scene.cylinders):
+                self._cast_cylinders(depth, scene.cylinders, pos, rot, dirs)
+            if len(scene.boxes):
+                self._cast_boxes(depth, scene.boxes, pos, rot, dirs)
+            if cfg.render_ground and pos[2] > 0:
+                self._cast_ground(depth, pos, dirs[2])
+        depth[depth > cfg.max_range_m] = np.inf
+        return depth
+
+    def render(
+        self, scene: Scene, position, rotation: np.ndarray, rng: np.random.Generator | None = None
+    ) -> np.ndarray:
+        """Normalised depth image (H, W) float32 in [0, 1] (see the module docstring).
+
+        ``rng`` drives noise and dropout; it is required when either is configured.
+        """
+        cfg = self.config
+        metric = self.metric_depth(scene, position, rotation)
+        if cfg.noise_std_m > 0.0 or cfg.dropout_prob > 0.0:
+            if rng is None:
+                raise ValueError("DepthCamera.render needs an rng when noise or dropout is configured")
+            if cfg.noise_std_m > 0.0:
+                finite = np.isfinite(metric)
+                metric = np.where(finite, metric + rng.normal(0.0, cfg.noise_std_m, metric.shape), metric)
+            image = np.clip(metric / cfg.max_range_m, 1e-6, 1.0)  # noise must not fake "no reading"
+            if cfg.dropout_prob > 0.0:
+                image[rng.random(image.shape) < cfg.dropout_prob] = 0.0
+            return image.astype(np.float32)
+        return np.minimum(metric / cfg.max_range_m, 1.0).astype(np.float32)
+
+    # -- projection helpers ----------------------------------------------------------------------
+
+    def _pixel_window(self, u_lo, u_hi, v_lo, v_hi) -> tuple[slice, slice]:
+        """Rows and columns whose pixel centres may fall in the tangent-space rectangle."""
+        cfg = self.config
+        # u = tan_h * (1 - 2 (col + 0.5) / W)  =>  col = (1 - u / tan_h) * W / 2 - 0.5
+        c0 = math.floor((1.0 - u_hi / self._tan_h) * cfg.width / 2 - 0.5)
+        c1 = math.ceil((1.0 - u_lo / self._tan_h) * cfg.width / 2 - 0.5)
+        r0 = math.floor((1.0 - v_hi / self._tan_v) * cfg.height / 2 - 0.5)
+        r1 = math.ceil((1.0 - v_lo / self._tan_v) * cfg.height / 2 - 0.5)
+        return slice(max(r0, 0), max(min(r1 + 1, cfg.height), 0)), slice(max(c0, 0), max(min(c1 + 1, cfg.width), 0))
+
+    def _points_window(self, points_cam: np.ndarray) -> tuple[slice, slice]:
+        """Pixel window of the convex hull of body-frame points (full image if any is behind)."""
+        x = points_cam[:, 0]
+        if np.any(x <= 1e-6):
+            return slice(0, self.config.height), slice(0, self.config.width)
+        u, v = points_cam[:, 1] / x, points_cam[:, 2] / x
+        return self._pixel_window(u.min(), u.max(), v.min(), v.max())
+
+    # -- casting: each writes min(depth, hit) into the depth buffer ------------------------------
+
+    def _cast_spheres(self, depth, spheres, pos, rot) -> None:
+        rel = spheres[:, :3] - pos
+        radius = spheres[:, 3]
+        dist = np.sqrt(np.sum(rel * rel, axis=1))
+        cam = rel @ rot  # world -> body frame (R^T rel, row-wise)
+        keep = (dist - radius < self._reach) & np.all(cam @ self._frustum.T > -radius[:, None], axis=1)
+        for (cx, cy, cz), r in zip(cam[keep].tolist(), radius[keep].tolist(), strict=True):
+            if cx > r:
+                # tangent planes through the camera: exact bounds of the sphere's image in u and v
+                k = cx * cx - r * r
+                hu = r * math.sqrt(max(cx * cx + cy * cy - r * r, 0.0))
+                hv = r * math.sqrt(max(cx * cx + cz * cz - r * r, 0.0))
+                rows, cols = self._pixel_window(
+                    (cx * cy - hu) / k, (cx * cy + hu) / k, (cx * cz - hv) / k, (cx * cz + hv) / k
+                )
+            else:
+                rows, cols = slice(0, self.config.height), slice(0, self.config.width)
+            u, v, a = self._u[rows, cols], self._v[rows, cols], self._a[rows, cols]
+            if u.size == 0:
+                continue
+            b = cx + cy * u + cz * v  # ray . centre
+            cc = cx * cx + cy * cy + cz * cz - r * r  # > 0 when the camera is outside the sphere
+            disc = b * b - a * cc
+            hit = disc >= 0
+            if not hit.any():
+                continue
+            root = np.sqrt(np.where(hit, disc, 0.0))
+            t = (b - root) / a if cc > 0 else (b + root) / a  # inside: the far side (exit point)
+            t[~hit | (t <= 0)] = np.inf
+            np.minimum(depth[rows, cols], t, out=depth[rows, cols])
+
+    def _cast_cylinders(self, depth, cylinders, pos, rot, dirs) -> None:
+        # vertical cylinders (side wall + top and bottom caps), solved in the world frame
+        horiz = np.hypot(cylinders[:, 0] - pos[0], cylinders[:, 1] - pos[1]) - cylinders[:, 4]
+        ahead = (cylinders[:, :2] - pos[:2]) @ rot[:2, 0]  # forward component of the axis offset
+        keep = (horiz < self._reach) & (ahead > -cylinders[:, 4])
+        corners = np.array([[sx, sy, sz] for sx in (-1, 1) for sy in (-1, 1) for sz in (0, 1)], dtype=np.float64)
+        for x, y, z0, z1, r in cylinders[keep].tolist():
+            box = np.stack([x + r * corners[:, 0], y + r * corners[:, 1], z0 + (z1 - z0) * corners[:, 2]], axis=1)
+            rows, cols = self._points_window((box - pos) @ rot)
+            dx, dy, dz = (d[rows, cols] for d in dirs)
+            if dx.size == 0:
+                continue
+            ox, oy = pos[0] - x, pos[1] - y
+            a = dx * dx + dy * dy
+            b = dx * ox + dy * oy
+            disc = b * b - a * (ox * ox + oy * oy - r * r)
+            with np.errstate(invalid="ignore", divide="ignore"):
+                t = (-b - np.sqrt(np.maximum(disc, 0.0))) / a
+                z = pos[2] + t * dz
+                best = np.where((disc >= 0) & (t > 0) & (z >= z0) & (z <= z1), t, np.inf)
+                for zc in (z0, z1):  # caps
+                    tc = (zc - pos[2]) / dz
+                    px, py = ox + tc * dx, oy + tc * dy
+                    best = np.where((tc > 0) & (px * px + py * py <= r * r) & (tc < best), tc, best)
+            np.minimum(depth[rows, cols], best, out=depth[rows, cols])
+
+    def _cast_boxes(self, depth, boxes, pos, rot, dirs) -> None:
+        # axis-aligned boxes: slab method in the world frame
+        nearest = np.clip(pos, boxes[:, :3], boxes[:, 3:])
+        keep = np.linalg.norm(nearest - pos, axis=1) < self._reach
+        corners = np.array([[sx, sy, sz] for sx in (0, 1) for sy in (0, 1) for sz in (0, 1)], dtype=np.float64)
+        for box in boxes[keep]:
+            lo, hi = box[:3], box[3:]
+            rows, cols = self._points_window((lo + corners * (hi - lo) - pos) @ rot)
+            d = [c[rows, cols] for c in dirs]
+            if d[0].size == 0:
+                continue
+            t_near = np.full(d[0].shape, -np.inf)
+            t_far = np.full(d[0].shape, np.inf)
+            with np.errstate(divide="ignore", invalid="ignore"):
+                for i in range(3):
+                    t0, t1 = (lo[i] - pos[i]) / d[i], (hi[i] - pos[i]) / d[i]
+                    # a ray parallel to a slab misses it unless it starts between the faces
+                    parallel = d[i] == 0
+                    inside = (lo[i] <= pos[i]) & (pos[i] <= hi[i])
+                    t0 = np.where(parallel, -np.inf if inside else np.inf, t0)
+                    t1 = np.where(parallel, np.inf if inside else -np.inf, t1)
+                    t_near = np.maximum(t_near, np.minimum(t0, t1))
+                    t_far = np.minimum(t_far, np.maximum(t0, t1))
+            t = np.where(t_near > 0, t_near, t_far)  # inside a box: its far side
+            t[(t_near > t_far) | (t_far <= 0)] = np.inf
+            np.minimum(depth[rows, cols], t, out=depth[rows, cols])
+
+    def _cast_ground(self, depth, pos, dz) -> None:
+        with np.errstate(divide="ignore"):
+            t = np.where(dz < 0, -pos[2] / dz, np.inf)
+        np.minimum(depth, t, out=depth)

@@ -1,0 +1,110 @@
+"""The privileged expert (paper code): pick the free waypoint nearest straight ahead.
+
+Given the obstacle spheres, the expert looks at a 33 x 33 grid of waypoints in the plane
+``lookahead_m`` ahead of the drone (lateral and vertical offsets -8..8 m in 0.5 m steps). A
+waypoint is blocked when the infinite line through the drone and the waypoint passes within
+``radius + inflate_m`` of any obstacle centre that lies 0 < dx < ``lookahead_m`` ahead. The free
+waypoint nearest the grid centre (Manhattan distance on grid indices) gives the direction; ties go
+to the first one in the grid's row-major order, rows running from +8 m up to -8 m down and columns
+from +8 m left to -8 m right (the original drew ties at random). Then the altitude floor and the
+take-off ramp override single components, in that order.
+
+Example::
+
+    # a sphere of radius 1 m, 4 m straight ahead: the nearest free waypoints are 3.5 m off-centre
+    # (up, left, right, down); the tie goes to "up"
+    expert_command(np.array([10.0, 0, 3.5]), np.array([[14.0, 0, 3.5, 1.0]]), 5.0)
+    # -> array([4.5808, 0., 2.0041])
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from functools import lru_cache
+
+import numpy as np
+
+
+@dataclass(frozen=True)
+class ExpertConfig:
+    """The expert's constants; defaults are the paper code's values (m, m/s)."""
+
+    lookahead_m: float = 8.0  # plane of waypoints, and the range of obstacles considered
+    grid_half_extent_m: float = 8.0  # waypoint offsets span [-8, 8] m laterally and vertically
+    grid_step_m: float = 0.5
+    inflate_m: float = 0.6  # obstacle radius inflation
+    fallback_command: tuple[float, float, float] = (0.5, 0.0, 0.25)  # no free waypoint (m/s)
+    min_altitude_m: float = 2.0  # below it: vz = gain * (min_altitude - z)
+    altitude_gain: float = 2.0
+    ramp_distance_m: float = 2.0  # while x < it: vx = max(ramp_min_speed, x / ramp_distance * speed)
+    ramp_min_speed_mps: float = 1.0
+
+
+@lru_cache(maxsize=8)
+def waypoint_grid(config: ExpertConfig) -> tuple[np.ndarray, np.ndarray]:
+    """Waypoint offsets relative to the drone, world frame.
+
+    Returns ``(waypoints, manhattan)``: waypoints (G, G, 3) with ``[i, j] = (lookahead, y_j, z_i)``,
+    z descending over rows (+8 first) and y descending over columns (+8 = left first), and the
+    Manhattan distance of each grid index to the centre, (G, G) int.
+    """
+    n_half = int(round(config.grid_half_extent_m / config.grid_step_m))
+    offsets = config.grid_step_m * np.arange(n_half, -n_half - 1, -1, dtype=np.float64)
+    zz, yy = np.meshgrid(offsets, offsets, indexing="ij")
+    wpts = np.stack([np.full_like(yy, config.lookahead_m), yy, zz], axis=-1)
+    idx = np.abs(np.arange(offsets.size) - n_half)
+    manhattan = idx[:, None] + idx[None, :]
+    wpts.setflags(write=False)  # cached: shared between calls
+    manhattan.setflags(write=False)
+    return wpts, manhattan
+
+
+def blocked_waypoints(rel_obstacles: np.ndarray, config: ExpertConfig) -> np.ndarray:
+    """(G, G) bool: waypoint blocked by any of ``rel_obstacles`` (K, 4) given relative to the drone.
+
+    Only obstacles with 0 < dx < lookahead count. The test is on the infinite line through the
+    drone and the waypoint (as the original code does), not the segment.
+    """
+    wpts, _ = waypoint_grid(config)
+    rel = np.asarray(rel_obstacles, dtype=np.float64).reshape(-1, 4)
+    ahead = rel[(rel[:, 0] > 0.0) & (rel[:, 0] < config.lookahead_m)]
+    if len(ahead) == 0:
+        return np.zeros(wpts.shape[:2], dtype=bool)
+    dirs = wpts.reshape(-1, 3)
+    dirs = dirs / np.linalg.norm(dirs, axis=1, keepdims=True)
+    centres, radii = ahead[:, :3], ahead[:, 3] + config.inflate_m
+    along = dirs @ centres.T  # (G*G, K) projection of each centre on each line
+    dist2 = np.sum(centres * centres, axis=1)[None, :] - along * along  # squared distance centre-line
+    blocked = np.any(dist2 <= (radii * radii)[None, :], axis=1)
+    return blocked.reshape(wpts.shape[:2])
+
+
+def expert_command(
+    position: np.ndarray,
+    obstacles: np.ndarray,
+    desired_speed: float,
+    config: ExpertConfig | None = None,
+) -> np.ndarray:
+    """World-frame velocity command (3,) in m/s.
+
+    position: (3,) drone position, world frame (m). obstacles: (K, 4) rows [x, y, z, radius], world
+    frame (m). desired_speed: forward speed to fly at (m/s).
+    """
+    cfg = config or ExpertConfig()
+    pos = np.asarray(position, dtype=np.float64).reshape(3)
+    obs = np.asarray(obstacles, dtype=np.float64).reshape(-1, 4)
+    rel = obs - np.concatenate([pos, [0.0]])
+    blocked = blocked_waypoints(rel, cfg)
+    if blocked.all():
+        command = np.array(cfg.fallback_command, dtype=np.float64)
+    else:
+        wpts, manhattan = waypoint_grid(cfg)
+        # argmin returns the first minimum in row-major order: the deterministic tie-break
+        flat = int(np.argmin(np.where(blocked, np.iinfo(np.int64).max, manhattan).ravel()))
+        wpt = wpts.reshape(-1, 3)[flat]
+        command = wpt / np.linalg.norm(wpt) * float(desired_speed)
+    if pos[2] < cfg.min_altitude_m:
+        command[2] = cfg.altitude_gain * (cfg.min_altitude_m - pos[2])
+    if pos[0] < cfg.ramp_distance_m:
+        command[0] = max(cfg.ramp_min_speed_mps, pos[0] / cfg.ramp_distance_m * float(desired_speed))
+    return command

@@ -1,0 +1,235 @@
+"""Quadrotor airframe and its rigid-body dynamics in pybullet.
+
+The airframe is the paper's (Flightmare "kingfisher"). pybullet integrates the rigid body (gravity,
+Newton-Euler); this module models what pybullet does not: first-order motor lag, the rotor thrust
+map, and the rotor forces and reaction torques, which it applies to the body every physics step.
+
+Several drones (one per lockstep scene) share one pybullet client. The drone bodies have no
+collision shapes, so they never touch each other or an obstacle (obstacles are not in pybullet at
+all: contact is detected geometrically by ``vitfly.sim.collision``), and one ``stepSimulation``
+advances every scene.
+
+Rotor order and layout (body frame: x forward, y left, z up):
+0 front-right (+x, -y), 1 back-left (-x, +y), 2 back-right (-x, -y), 3 front-left (+x, +y).
+Rotors 0 and 1 produce a reaction torque of +kappa * thrust about body z, rotors 2 and 3 -kappa * thrust.
+
+The per-step maths is written with Python floats rather than numpy: it runs 240+ times per
+simulated second per drone on 3-vectors, where numpy's per-call overhead would dominate.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import math
+import os
+import sys
+from dataclasses import dataclass
+from typing import NamedTuple
+
+import numpy as np
+import pybullet
+
+GRAVITY_MPS2 = 9.81
+
+
+@dataclass(frozen=True)
+class Airframe:
+    """Physical constants of the quadrotor (SI units)."""
+
+    mass_kg: float = 0.752
+    inertia_kgm2: tuple[float, float, float] = (0.0025, 0.0021, 0.0043)  # diagonal, body frame
+    arm_x_m: float = 0.075  # rotors at (+-arm_x, +-arm_y)
+    arm_y_m: float = 0.10
+    thrust_coeff: float = 1.5625e-6  # thrust = thrust_coeff * omega^2 (N, omega in rad/s)
+    torque_coeff: float = 0.022  # reaction torque / thrust (m)
+    motor_time_constant_s: float = 0.033
+    omega_max_radps: float = 2800.0
+    omega_min_radps: float = 0.0
+    diameter_m: float = 0.25
+
+    @property
+    def rotor_positions(self) -> np.ndarray:
+        """(4, 3) rotor positions in the body frame (m), in rotor order."""
+        ax, ay = self.arm_x_m, self.arm_y_m
+        return np.array([[ax, -ay, 0.0], [-ax, ay, 0.0], [-ax, -ay, 0.0], [ax, ay, 0.0]])
+
+    @property
+    def rotor_spin(self) -> np.ndarray:
+        """(4,) sign of each rotor's reaction torque about body z."""
+        return np.array([1.0, 1.0, -1.0, -1.0])
+
+    @property
+    def allocation(self) -> np.ndarray:
+        """(4, 4) matrix A with [collective thrust, tau_x, tau_y, tau_z] = A @ rotor_thrusts (N, N m)."""
+        pos = self.rotor_positions
+        return np.stack([np.ones(4), pos[:, 1], -pos[:, 0], self.torque_coeff * self.rotor_spin])
+
+    @property
+    def max_rotor_thrust_n(self) -> float:
+        return self.thrust_coeff * self.omega_max_radps**2
+
+    @property
+    def hover_omega_radps(self) -> float:
+        return math.sqrt(self.mass_kg * GRAVITY_MPS2 / (4 * self.thrust_coeff))
+
+
+class DroneState(NamedTuple):
+    """One drone's state. Tuples of floats, world frame unless said otherwise.
+
+    position (3,) m; quat (4,) (w, x, y, z) body-to-world; rotation (9,) body-to-world matrix,
+    row-major; velocity (3,) m/s; body_rates (3,) rad/s in the body frame.
+    """
+
+    position: tuple[float, float, float]
+    quat: tuple[float, float, float, float]
+    rotation: tuple[float, ...]
+    velocity: tuple[float, float, float]
+    body_rates: tuple[float, float, float]
+
+
+@contextlib.contextmanager
+def _quiet_stdout():
+    """pybullet's C code prints a banner on connect; keep it off our stdout (progress bars, pipes)."""
+    try:
+        fd = sys.stdout.fileno()
+    except (AttributeError, OSError, ValueError):
+        yield
+        return
+    sys.stdout.flush()
+    saved = os.dup(fd)
+    try:
+        with open(os.devnull, "w") as devnull:
+            os.dup2(devnull.fileno(), fd)
+            yield
+    finally:
+        os.dup2(saved, fd)
+        os.close(saved)
+
+
+class QuadrotorFleet:
+    """N quadrotors in one pybullet DIRECT client, stepped together.
+
+    Example::
+
+        fleet = QuadrotorFleet(num_drones=2, airframe=Airframe(), physics_hz=240)
+        fleet.reset(np.array([[0, 0, 3.5], [0, 0, 3.5]]))
+        hover = [fleet.airframe.hover_omega_radps] * 4
+        fleet.step([hover, hover])          # one 1/240 s step of both drones
+        fleet.states()[0].position
+    """
+
+    def __init__(self, num_drones: int, airframe: Airframe | None = None, physics_hz: float = 240.0):
+        self.airframe = airframe or Airframe()
+        self.num_drones = int(num_drones)
+        self.dt = 1.0 / float(physics_hz)
+        with _quiet_stdout():
+            self._cid = pybullet.connect(pybullet.DIRECT)
+        pybullet.setGravity(0.0, 0.0, -GRAVITY_MPS2, physicsClientId=self._cid)
+        pybullet.setTimeStep(self.dt, physicsClientId=self._cid)
+        pybullet.setPhysicsEngineParameter(numSubSteps=1, deterministicOverlappingPairs=1, physicsClientId=self._cid)
+        self._bodies = [self._create_body() for _ in range(self.num_drones)]
+        self._motor_alpha = 1.0 - math.exp(-self.dt / self.airframe.motor_time_constant_s)
+        self._rotor_omega = [[0.0] * 4 for _ in range(self.num_drones)]
+        self._time_s = 0.0
+
+    def _create_body(self) -> int:
+        af = self.airframe
+        # no collision shape: drones never touch each other (contact with obstacles is geometric)
+        body = pybullet.createMultiBody(baseMass=af.mass_kg, baseCollisionShapeIndex=-1, physicsClientId=self._cid)
+        pybullet.changeDynamics(
+            body,
+            -1,
+            localInertiaDiagonal=list(af.inertia_kgm2),
+            linearDamping=0.0,
+            angularDamping=0.0,
+            physicsClientId=self._cid,
+        )
+        return body
+
+    @property
+    def time_s(self) -> float:
+        """Simulated time since the last reset (s)."""
+        return self._time_s
+
+    @property
+    def rotor_omega(self) -> np.ndarray:
+        """(N, 4) current rotor speeds (rad/s)."""
+        return np.array(self._rotor_omega)
+
+    def close(self) -> None:
+        if self._cid is not None:
+            pybullet.disconnect(physicsClientId=self._cid)
+            self._cid = None
+
+    def __enter__(self) -> QuadrotorFleet:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    def __del__(self) -> None:
+        with contextlib.suppress(Exception):
+            self.close()
+
+    def reset(self, positions: np.ndarray) -> None:
+        """Place drone i at ``positions[i]`` (m, world), level, heading +x, at rest, rotors at hover speed."""
+        positions = np.asarray(positions, dtype=np.float64).reshape(self.num_drones, 3)
+        for body, pos in zip(self._bodies, positions, strict=True):
+            pybullet.resetBasePositionAndOrientation(
+                body, pos.tolist(), [0.0, 0.0, 0.0, 1.0], physicsClientId=self._cid
+            )
+            pybullet.resetBaseVelocity(body, [0.0, 0.0, 0.0], [0.0, 0.0, 0.0], physicsClientId=self._cid)
+        hover = self.airframe.hover_omega_radps
+        self._rotor_omega = [[hover] * 4 for _ in range(self.num_drones)]
+        self._time_s = 0.0
+
+    def states(self) -> list[DroneState]:
+        """Current state of every drone (see :class:`DroneState`)."""
+        cid = self._cid
+        out = []
+        for body in self._bodies:
+            pos, q = pybullet.getBasePositionAndOrientation(body, physicsClientId=cid)
+            vel, w = pybullet.getBaseVelocity(body, physicsClientId=cid)
+            r = pybullet.getMatrixFromQuaternion(q)
+            # body rates = R^T omega_world
+            rates = (
+                r[0] * w[0] + r[3] * w[1] + r[6] * w[2],
+                r[1] * w[0] + r[4] * w[1] + r[7] * w[2],
+                r[2] * w[0] + r[5] * w[1] + r[8] * w[2],
+            )
+            out.append(DroneState(pos, (q[3], q[0], q[1], q[2]), r, vel, rates))
+        return out
+
+    def step(self, rotor_omega_cmd, states: list[DroneState] | None = None) -> None:
+        """Advance all drones one physics step.
+
+        rotor_omega_cmd: N sequences of 4 commanded rotor speeds (rad/s), clipped to the motors'
+        range; the motors follow with a first-order lag. ``states`` is :meth:`states` at the start
+        of the step if the caller has it already (saves querying pybullet twice).
+        """
+        af, cid = self.airframe, self._cid
+        if states is None:
+            states = self.states()
+        k, kappa, alpha = af.thrust_coeff, af.torque_coeff, self._motor_alpha
+        lo, hi = af.omega_min_radps, af.omega_max_radps
+        ax, ay = af.arm_x_m, af.arm_y_m
+        for body, omega, cmd, st in zip(self._bodies, self._rotor_omega, rotor_omega_cmd, states, strict=True):
+            for j in range(4):
+                c = min(max(float(cmd[j]), lo), hi)
+                omega[j] += alpha * (c - omega[j])  # exact discretisation of the first-order lag
+            f0, f1, f2, f3 = (k * o * o for o in omega)
+            thrust = f0 + f1 + f2 + f3
+            tau_x = ay * (-f0 + f1 - f2 + f3)
+            tau_y = ax * (-f0 + f1 + f2 - f3)
+            tau_z = kappa * (f0 + f1 - f2 - f3)
+            r = st.rotation
+            force = (r[2] * thrust, r[5] * thrust, r[8] * thrust)
+            torque = (
+                r[0] * tau_x + r[1] * tau_y + r[2] * tau_z,
+                r[3] * tau_x + r[4] * tau_y + r[5] * tau_z,
+                r[6] * tau_x + r[7] * tau_y + r[8] * tau_z,
+            )
+            pybullet.applyExternalForce(body, -1, force, st.position, pybullet.WORLD_FRAME, physicsClientId=cid)
+            pybullet.applyExternalTorque(body, -1, torque, pybullet.WORLD_FRAME, physicsClientId=cid)
+        pybullet.stepSimulation(physicsClientId=cid)
+        self._time_s += self.dt
