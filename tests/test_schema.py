@@ -205,8 +205,10 @@ def test_missing_and_non_hdf5_files(tmp_path):
         (lambda f: f.attrs.__setitem__("schema_version", 2), "attribute 'schema_version' is 2"),
         (lambda f: f.attrs.__setitem__("image_shape", [64, 64]), r"'image_shape' is \[64, 64\], expected \[60, 90\]"),
         (lambda f: f.__delitem__("quat"), "dataset '/quat' is missing"),
-        (lambda f: (f.__delitem__("time"), f.create_dataset("time", data=np.zeros(13, np.float32))),
-         "dataset '/time' has dtype float32, expected float64"),
+        (
+            lambda f: (f.__delitem__("time"), f.create_dataset("time", data=np.zeros(13, np.float32))),
+            "dataset '/time' has dtype float32, expected float64",
+        ),
         (lambda f: f["velocity_cmd"].__setitem__((3, 0), np.nan), r"'/velocity_cmd' holds NaN .* row 3"),
     ],
 )

@@ -379,11 +379,13 @@ def _create_layout(f: h5py.File, config: dict, depth_max_m: float) -> None:
     f.attrs["config"] = json.dumps(config, sort_keys=True, default=str)
     for name, (dtype, tail) in ROW_FIELDS.items():
         if name == "depth":
-            f.create_dataset(name, (0, *tail), maxshape=(None, *tail), dtype=dtype, chunks=(1, *tail),
-                             **DEPTH_COMPRESSION)
+            f.create_dataset(
+                name, (0, *tail), maxshape=(None, *tail), dtype=dtype, chunks=(1, *tail), **DEPTH_COMPRESSION
+            )
         else:
-            f.create_dataset(name, (0, *tail), maxshape=(None, *tail), dtype=dtype,
-                             chunks=(TELEMETRY_CHUNK_ROWS, *tail))
+            f.create_dataset(
+                name, (0, *tail), maxshape=(None, *tail), dtype=dtype, chunks=(TELEMETRY_CHUNK_ROWS, *tail)
+            )
     f.create_dataset("traj_offsets", data=np.zeros(1, dtype=np.int64), maxshape=(None,), chunks=(1024,))
     group = f.create_group("trajectories")
     for name, dtype in TRAJ_FIELDS.items():

@@ -6,7 +6,18 @@ from vitfly.zoo.checkpoint import load_network, save_checkpoint
 from vitfly.zoo.legacy import load_legacy_checkpoint
 from vitfly.zoo.registry import create_model, list_models, register_model
 
+
+def __getattr__(name: str):  # PolicyModule / create_policy load lazily: they import Lightning
+    if name in ("PolicyModule", "create_policy"):
+        from vitfly.zoo import policy
+
+        return getattr(policy, name)
+    raise AttributeError(f"module 'vitfly.zoo' has no attribute {name!r}")
+
+
 __all__ = [
+    "PolicyModule",
+    "create_policy",
     "create_model",
     "list_models",
     "load_legacy_checkpoint",

@@ -1,0 +1,228 @@
+"""LightningDataModule for behaviour cloning with truncated BPTT over vitfly HDF5 datasets.
+
+Batches follow DESIGN.md's batch contract: B whole trajectories (or ``max_length`` windows of
+them), padded to the longest, with a validity mask and ``traj_index``. The train/validation split
+is by trajectory, seeded, and written to ``split.json`` in the run directory.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+from collections.abc import Iterator, Sequence
+from pathlib import Path
+
+import lightning as L
+import numpy as np
+from torch.utils.data import DataLoader, Sampler
+
+from vitfly.datamodules.dataset import TrajectoryDataset, collate_trajectories
+from vitfly.datamodules.schema import open_trajectories
+from vitfly.errors import VitflyError
+
+SPLIT_FILE = "split.json"
+
+
+def split_trajectories(num_trajectories: int, val_fraction: float, seed: int) -> tuple[list[int], list[int]]:
+    """Seeded split of trajectory indices into (train, val); val gets round(fraction * M), at least 1 if M > 1."""
+    if not 0.0 <= val_fraction < 1.0:
+        raise VitflyError(f"val_fraction: expected a number in [0, 1), got {val_fraction}")
+    order = np.random.default_rng(seed).permutation(num_trajectories)
+    n_val = int(round(val_fraction * num_trajectories))
+    if val_fraction > 0 and num_trajectories > 1:
+        n_val = min(max(n_val, 1), num_trajectories - 1)
+    return sorted(order[n_val:].tolist()), sorted(order[:n_val].tolist())
+
+
+class LengthBucketBatchSampler(Sampler[list[int]]):
+    """Batches of items with similar lengths (less padding), shuffled, reproducible per (seed, epoch).
+
+    Items are shuffled, cut into pools of ``batch_size * pool_batches``, sorted by length within a
+    pool, cut into batches, and the batches shuffled.
+    """
+
+    def __init__(self, lengths: Sequence[int], batch_size: int, shuffle: bool, seed: int, pool_batches: int = 50):
+        self.lengths = np.asarray(lengths)
+        self.batch_size = batch_size
+        self.shuffle = shuffle
+        self.seed = seed
+        self.pool = batch_size * pool_batches
+        self.epoch = 0
+
+    def set_epoch(self, epoch: int) -> None:
+        self.epoch = epoch
+
+    def __len__(self) -> int:
+        return math.ceil(len(self.lengths) / self.batch_size)
+
+    def __iter__(self) -> Iterator[list[int]]:
+        n = len(self.lengths)
+        if not self.shuffle:
+            order = np.arange(n)
+            yield from (order[i : i + self.batch_size].tolist() for i in range(0, n, self.batch_size))
+            return
+        rng = np.random.default_rng((self.seed, self.epoch))
+        self.epoch += 1  # also advances when nobody calls set_epoch
+        order = rng.permutation(n)
+        batches = []
+        for p in range(0, n, self.pool):
+            pool = order[p : p + self.pool]
+            pool = pool[np.argsort(self.lengths[pool], kind="stable")]
+            batches.extend(pool[i : i + self.batch_size].tolist() for i in range(0, len(pool), self.batch_size))
+        for i in rng.permutation(len(batches)):
+            yield batches[i]
+
+
+class TrajectoryDataModule(L.LightningDataModule):
+    """Train/validation (and test/predict) loaders over a vitfly HDF5 dataset.
+
+    Args:
+        data_path: HDF5 dataset (schema v1) to train and validate on.
+        batch_size: trajectories (or windows) per batch.
+        val_fraction: share of trajectories held out for validation (split by trajectory).
+        split_seed: seed of the split (and of the batch order).
+        split_file: reuse the split recorded in an earlier run's split.json instead of drawing one.
+        max_length: cut trajectories longer than this many steps into windows (None: whole).
+        num_workers: DataLoader worker processes (each opens the file itself).
+        cache_mb: per-process in-memory LRU cache of trajectories, MiB (0: always read from disk).
+        bucket_by_length: batch trajectories of similar lengths together (less padding).
+        use_state: passed through from the policy (recorded with the split; the network zeros the
+            state itself when it is False).
+        test_path / predict_path: other datasets for ``vitfly test`` / ``vitfly predict``
+            (default: the validation trajectories).
+    """
+
+    def __init__(
+        self,
+        data_path: str,
+        batch_size: int = 4,
+        val_fraction: float = 0.1,
+        split_seed: int = 0,
+        split_file: str | None = None,
+        max_length: int | None = None,
+        num_workers: int = 0,
+        cache_mb: float = 256.0,
+        bucket_by_length: bool = True,
+        use_state: bool = True,
+        test_path: str | None = None,
+        predict_path: str | None = None,
+    ):
+        super().__init__()
+        if batch_size < 1:
+            raise VitflyError(f"batch_size: expected a positive number of trajectories, got {batch_size}")
+        self.save_hyperparameters()
+        self.data_path = data_path
+        self.batch_size = batch_size
+        self.val_fraction = val_fraction
+        self.split_seed = split_seed
+        self.split_file = split_file
+        self.max_length = max_length
+        self.num_workers = num_workers
+        self.cache_mb = cache_mb
+        self.bucket_by_length = bucket_by_length
+        self.use_state = use_state
+        self.test_path = test_path
+        self.predict_path = predict_path
+        self.train_indices: list[int] = []
+        self.val_indices: list[int] = []
+        self._datasets: dict[str, TrajectoryDataset] = {}
+
+    # -- split ---------------------------------------------------------------------------------
+
+    def _load_split(self, num_trajectories: int) -> tuple[list[int], list[int]]:
+        path = Path(self.split_file)
+        try:
+            split = json.loads(path.read_text())
+            train, val = [int(i) for i in split["train"]], [int(i) for i in split["val"]]
+        except (OSError, ValueError, KeyError, TypeError) as err:
+            raise VitflyError(f"{path}: not a readable split file with 'train' and 'val' index lists ({err})") from None
+        if split.get("num_trajectories") != num_trajectories:
+            raise VitflyError(
+                f"{path}: field 'num_trajectories' is {split.get('num_trajectories')}, "
+                f"but {self.data_path} holds {num_trajectories} trajectories"
+            )
+        return train, val
+
+    def split_record(self) -> dict:
+        with open_trajectories(self.data_path, check_values=False) as tf:
+            seeds = [int(s) for s in tf.table["seed"]]
+        return {
+            "data_path": os.path.abspath(self.data_path),
+            "num_trajectories": len(seeds),
+            "val_fraction": self.val_fraction,
+            "split_seed": self.split_seed,
+            "use_state": self.use_state,
+            "train": self.train_indices,
+            "val": self.val_indices,
+            "train_seeds": [seeds[i] for i in self.train_indices],
+            "val_seeds": [seeds[i] for i in self.val_indices],
+        }
+
+    def save_split(self, directory: str | os.PathLike) -> Path:
+        """Write split.json into ``directory`` atomically; returns its path."""
+        directory = Path(directory)
+        directory.mkdir(parents=True, exist_ok=True)
+        out = directory / SPLIT_FILE
+        tmp = directory / f".{SPLIT_FILE}.tmp-{os.getpid()}"
+        tmp.write_text(json.dumps(self.split_record(), indent=1))
+        os.replace(tmp, out)
+        return out
+
+    # -- Lightning hooks -----------------------------------------------------------------------
+
+    def setup(self, stage: str | None = None) -> None:
+        if "train" not in self._datasets:
+            full = TrajectoryDataset(self.data_path, max_length=self.max_length, cache_mb=self.cache_mb)
+            if self.split_file:
+                self.train_indices, self.val_indices = self._load_split(full.num_trajectories)
+            else:
+                self.train_indices, self.val_indices = split_trajectories(
+                    full.num_trajectories, self.val_fraction, self.split_seed
+                )
+            self._datasets["train"] = self._subset(self.train_indices)
+            self._datasets["val"] = self._subset(self.val_indices) if self.val_indices else None
+            trainer = self.trainer
+            if trainer is not None and trainer.is_global_zero:
+                self.save_split(trainer.log_dir or trainer.default_root_dir)
+        if stage == "test" and self.test_path and "test" not in self._datasets:
+            self._datasets["test"] = TrajectoryDataset(self.test_path, max_length=self.max_length)
+        if stage == "predict" and self.predict_path and "predict" not in self._datasets:
+            self._datasets["predict"] = TrajectoryDataset(self.predict_path, max_length=self.max_length)
+
+    def _subset(self, indices: list[int]) -> TrajectoryDataset:
+        return TrajectoryDataset(self.data_path, indices, max_length=self.max_length, cache_mb=self.cache_mb)
+
+    def _loader(self, dataset: TrajectoryDataset, shuffle: bool) -> DataLoader:
+        lengths = dataset.window_lengths()
+        if self.bucket_by_length or not shuffle:
+            sampler = LengthBucketBatchSampler(lengths, self.batch_size, shuffle, self.split_seed)
+            kwargs = {"batch_sampler": sampler}
+        else:
+            kwargs = {"batch_size": self.batch_size, "shuffle": True}
+        return DataLoader(
+            dataset,
+            collate_fn=collate_trajectories,
+            num_workers=self.num_workers,
+            persistent_workers=self.num_workers > 0,
+            **kwargs,
+        )
+
+    def train_dataloader(self) -> DataLoader:
+        return self._loader(self._datasets["train"], shuffle=True)
+
+    def val_dataloader(self) -> DataLoader | list:
+        val = self._datasets.get("val")
+        return [] if val is None else self._loader(val, shuffle=False)
+
+    def test_dataloader(self) -> DataLoader:
+        dataset = self._datasets.get("test") or self._datasets.get("val")
+        if dataset is None:
+            raise VitflyError("data.test_path: no test dataset given and no validation trajectories to test on")
+        return self._loader(dataset, shuffle=False)
+
+    def predict_dataloader(self) -> DataLoader:
+        dataset = self._datasets.get("predict") or self._datasets.get("val")
+        if dataset is None:
+            raise VitflyError("data.predict_path: no dataset given and no validation trajectories to predict on")
+        return self._loader(dataset, shuffle=False)

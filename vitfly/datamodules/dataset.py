@@ -1,0 +1,175 @@
+"""Streaming per-trajectory torch Dataset over a vitfly HDF5 file, and the padding collate.
+
+One item is one trajectory, or one window of at most ``max_length`` steps of it. Items are read
+from disk on demand; an optional LRU cache keeps recently read trajectories in memory (per process:
+each DataLoader worker has its own cache and its own file handle, opened lazily after the fork).
+"""
+
+from __future__ import annotations
+
+import os
+from collections import OrderedDict
+from collections.abc import Sequence
+
+import numpy as np
+import torch
+from torch.utils.data import Dataset
+
+from vitfly.datamodules.schema import TrajectoryFile, open_trajectories
+from vitfly.errors import VitflyError
+
+# what the policy needs from each step (the rest of the schema stays on disk)
+TRAINING_FIELDS = ("depth", "desired_speed", "quat", "velocity_cmd")
+
+
+class TrajectoryCache:
+    """Least-recently-used cache of per-trajectory arrays, bounded in bytes."""
+
+    def __init__(self, max_bytes: int):
+        self.max_bytes = int(max_bytes)
+        self.bytes = 0
+        self._items: OrderedDict[int, dict[str, np.ndarray]] = OrderedDict()
+
+    def get(self, key: int) -> dict[str, np.ndarray] | None:
+        item = self._items.get(key)
+        if item is not None:
+            self._items.move_to_end(key)
+        return item
+
+    def put(self, key: int, item: dict[str, np.ndarray]) -> None:
+        size = sum(a.nbytes for a in item.values())
+        if size > self.max_bytes:
+            return
+        self._items[key] = item
+        self.bytes += size
+        while self.bytes > self.max_bytes:
+            _, old = self._items.popitem(last=False)
+            self.bytes -= sum(a.nbytes for a in old.values())
+
+    def __len__(self) -> int:
+        return len(self._items)
+
+
+def make_windows(lengths: Sequence[int], indices: Sequence[int], max_length: int | None) -> list[tuple[int, int, int]]:
+    """(trajectory, start, stop) items: whole trajectories, or consecutive windows of <= max_length steps."""
+    if max_length is not None and max_length < 1:
+        raise VitflyError(f"max_length: expected a positive number of steps or None, got {max_length}")
+    windows = []
+    for m in indices:
+        n = int(lengths[m])
+        step = n if max_length is None else max_length
+        windows.extend((int(m), lo, min(lo + step, n)) for lo in range(0, n, step))
+    return windows
+
+
+class TrajectoryDataset(Dataset):
+    """Trajectories (or windows of them) of a vitfly dataset as dicts of tensors.
+
+    Each item: ``depth`` float32 (T, 1, 60, 90) normalised depth in [0, 1]; ``desired_speed``
+    (T, 1) m/s; ``quat`` (T, 4) (w, x, y, z); ``velocity_cmd`` (T, 3) m/s world frame;
+    ``traj_index`` and ``start`` (window start step) as ints.
+
+    path: the HDF5 file (validated once here). indices: trajectories to use (default all).
+    max_length: cut trajectories into windows of at most this many steps. cache_mb: LRU cache size
+    in MiB per process (0 disables it).
+    """
+
+    def __init__(
+        self,
+        path: str | os.PathLike,
+        indices: Sequence[int] | None = None,
+        max_length: int | None = None,
+        cache_mb: float = 0.0,
+    ):
+        self.path = os.fspath(path)
+        with open_trajectories(self.path) as tf:  # validates schema, shapes, NaN telemetry
+            self.lengths = tf.lengths.copy()
+            self.num_trajectories = len(tf)
+        self.indices = list(range(self.num_trajectories)) if indices is None else [int(i) for i in indices]
+        bad = [i for i in self.indices if not 0 <= i < self.num_trajectories]
+        if bad:
+            raise VitflyError(f"{self.path}: trajectory indices {bad[:5]} out of range [0, {self.num_trajectories})")
+        self.max_length = max_length
+        self.windows = make_windows(self.lengths, self.indices, max_length)
+        self.cache_bytes = int(cache_mb * 2**20)
+        self._file: TrajectoryFile | None = None
+        self._pid: int | None = None
+        self._cache = TrajectoryCache(self.cache_bytes)
+
+    def __getstate__(self):
+        state = self.__dict__.copy()
+        state["_file"], state["_pid"] = None, None  # h5py handles do not survive pickling / forking
+        state["_cache"] = TrajectoryCache(self.cache_bytes)
+        return state
+
+    def _handle(self) -> TrajectoryFile:
+        if self._file is None or self._pid != os.getpid():
+            self._file = open_trajectories(self.path, check_values=False)
+            self._pid = os.getpid()
+            self._cache = TrajectoryCache(self.cache_bytes)
+        return self._file
+
+    def __len__(self) -> int:
+        return len(self.windows)
+
+    def window_lengths(self) -> np.ndarray:
+        return np.array([hi - lo for _, lo, hi in self.windows])
+
+    def read_arrays(self, m: int) -> dict[str, np.ndarray]:
+        """The training fields of trajectory m in on-disk dtypes (depth uint8), through the cache."""
+        item = self._cache.get(m)
+        if item is None:
+            item = self._handle().read(m, TRAINING_FIELDS)
+            if self.cache_bytes:
+                self._cache.put(m, item)
+        return item
+
+    def __getitem__(self, i: int) -> dict[str, torch.Tensor | int]:
+        m, lo, hi = self.windows[i]
+        arrays = self.read_arrays(m)
+        return {
+            "depth": torch.from_numpy(np.ascontiguousarray(arrays["depth"][lo:hi])),  # uint8; collate scales it
+            "desired_speed": torch.from_numpy(arrays["desired_speed"][lo:hi]).unsqueeze(-1),
+            "quat": torch.from_numpy(arrays["quat"][lo:hi]),
+            "velocity_cmd": torch.from_numpy(arrays["velocity_cmd"][lo:hi]),
+            "traj_index": m,
+            "start": lo,
+        }
+
+    def close(self) -> None:
+        if self._file is not None:
+            self._file.close()
+            self._file = None
+
+
+def collate_trajectories(items: list[dict]) -> dict[str, torch.Tensor]:
+    """Pad B items to the longest and stack them (the batch contract of DESIGN.md).
+
+    depth float32 (B, T, 1, 60, 90) in [0, 1]; desired_speed (B, T, 1); quat (B, T, 4);
+    velocity_cmd (B, T, 3); mask bool (B, T), true on real steps; traj_index (B,); start (B,).
+    Padding is zeros (and never reaches the loss: the policy masks it out).
+    """
+    b = len(items)
+    t = max(item["depth"].shape[0] for item in items)
+    h, w = items[0]["depth"].shape[1:]
+    depth = torch.zeros((b, t, 1, h, w), dtype=torch.float32)
+    speed = torch.zeros((b, t, 1), dtype=torch.float32)
+    quat = torch.zeros((b, t, 4), dtype=torch.float32)
+    cmd = torch.zeros((b, t, 3), dtype=torch.float32)
+    mask = torch.zeros((b, t), dtype=torch.bool)
+    for i, item in enumerate(items):
+        n = item["depth"].shape[0]
+        depth[i, :n, 0] = item["depth"].to(torch.float32).mul_(1.0 / 255.0)
+        speed[i, :n] = item["desired_speed"]
+        quat[i, :n] = item["quat"]
+        cmd[i, :n] = item["velocity_cmd"]
+        mask[i, :n] = True
+    return {
+        "depth": depth,
+        "desired_speed": speed,
+        "quat": quat,
+        "velocity_cmd": cmd,
+        "mask": mask,
+        "traj_index": torch.tensor([item["traj_index"] for item in items], dtype=torch.long),
+        "start": torch.tensor([item["start"] for item in items], dtype=torch.long),
+    }

@@ -1,0 +1,104 @@
+"""Training from Python: the same PolicyModule / TrajectoryDataModule / Trainer set-up as ``vitfly fit``.
+
+``train_policy(data_path, model, ...)`` is what ``vitfly pipeline`` and ``vitfly ablate`` call; the
+shared pieces (checkpoint callback, progress bar, wandb default) are used by ``vitfly.training_cli``.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+from typing import Any
+
+from vitfly.errors import VitflyError
+
+MONITOR = "val/loss"
+BEST_NAME = "best"  # checkpoints/best.ckpt: the lowest validation loss so far
+CHECKPOINT_DIR = "checkpoints"
+
+
+def checkpoint_defaults() -> dict[str, Any]:
+    """ModelCheckpoint arguments for best + last checkpoints with fixed names (best.ckpt, last.ckpt)."""
+    return {
+        "monitor": MONITOR,
+        "mode": "min",
+        "save_top_k": 1,
+        "save_last": True,
+        "filename": BEST_NAME,
+        "auto_insert_metric_name": False,
+        "enable_version_counter": False,  # overwrite best.ckpt instead of writing best-v1.ckpt
+    }
+
+
+def default_wandb_offline() -> None:
+    """wandb stays offline unless the user has chosen a mode (WANDB_MODE=online to sync)."""
+    os.environ.setdefault("WANDB_MODE", "offline")
+
+
+def finish_wandb() -> None:
+    """Close a wandb run if one was started, so the next run in this process starts clean."""
+    import sys
+
+    wandb = sys.modules.get("wandb")
+    if wandb is not None and getattr(wandb, "run", None) is not None:
+        wandb.finish()
+
+
+def train_policy(
+    data_path: str | os.PathLike,
+    model: str,
+    out_dir: str | os.PathLike,
+    use_state: bool = True,
+    max_epochs: int = 100,
+    batch_size: int = 4,
+    val_fraction: float = 0.2,
+    seed: int = 0,
+    policy_kwargs: dict | None = None,
+    data_kwargs: dict | None = None,
+    trainer_kwargs: dict | None = None,
+    progress_bar: bool = True,
+) -> Path:
+    """Train ``model`` on ``data_path``; returns the path of the best checkpoint (last if no validation).
+
+    Writes ``out_dir/checkpoints/{best,last}.ckpt``, ``out_dir/metrics.csv`` and ``out_dir/split.json``.
+    An interrupted run resumes from ``out_dir/checkpoints/last.ckpt`` when called again with the same
+    arguments; a finished run returns at once. ``policy_kwargs`` go to PolicyModule (e.g. lr,
+    tbptt_steps), ``data_kwargs`` to TrajectoryDataModule, ``trainer_kwargs`` to lightning.Trainer.
+    """
+    import lightning as L
+    from lightning.pytorch.callbacks import ModelCheckpoint, RichProgressBar
+    from lightning.pytorch.loggers import CSVLogger
+
+    from vitfly.datamodules.datamodule import TrajectoryDataModule
+    from vitfly.zoo.policy import create_policy
+
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    L.seed_everything(seed, verbose=False)
+    policy = create_policy(model, use_state=use_state, **(policy_kwargs or {}))
+    data = TrajectoryDataModule(
+        str(data_path),
+        batch_size=batch_size,
+        val_fraction=val_fraction,
+        split_seed=seed,
+        use_state=use_state,
+        **(data_kwargs or {}),
+    )
+    ckpt_dir = out_dir / CHECKPOINT_DIR
+    checkpoint = ModelCheckpoint(dirpath=ckpt_dir, **checkpoint_defaults())
+    callbacks = [checkpoint] + ([RichProgressBar()] if progress_bar else [])
+    trainer = L.Trainer(
+        max_epochs=max_epochs,
+        default_root_dir=out_dir,
+        logger=CSVLogger(save_dir=out_dir, name="", version=""),
+        callbacks=callbacks,
+        enable_progress_bar=progress_bar,
+        **{"enable_model_summary": False, **(trainer_kwargs or {})},
+    )
+    last = ckpt_dir / "last.ckpt"
+    trainer.fit(policy, datamodule=data, ckpt_path=str(last) if last.exists() else None, weights_only=True)
+    best = checkpoint.best_model_path
+    path = Path(best) if best else last
+    if not path.exists():
+        raise VitflyError(f"{out_dir}: training ended without writing a checkpoint (max_epochs={max_epochs})")
+    return path

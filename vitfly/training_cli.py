@@ -1,0 +1,83 @@
+"""``vitfly fit | validate | test | predict``: LightningCLI over PolicyModule and TrajectoryDataModule.
+
+YAML (omegaconf interpolation allowed)::
+
+    seed_everything: 0
+    model: vit_lstm                 # a registered network name, or a class path with init_args
+    data: {data_path: data/spheres.h5}
+    trainer: {max_epochs: 100}
+
+Defaults: CSV logger (TensorBoard or wandb via ``trainer.logger``; wandb stays offline unless
+WANDB_MODE says otherwise), a rich progress bar, checkpoints ``checkpoints/best.ckpt`` (lowest
+``val/loss``) and ``checkpoints/last.ckpt`` in the run directory (``checkpoint.*`` flags), and the
+train/validation split in ``split.json`` beside them. Resume with ``--ckpt_path .../last.ckpt``.
+"""
+
+from __future__ import annotations
+
+import warnings
+from typing import Any
+
+from lightning.pytorch.callbacks import ModelCheckpoint, ProgressBar, RichProgressBar
+from lightning.pytorch.cli import LightningArgumentParser, LightningCLI
+
+from vitfly.datamodules.datamodule import TrajectoryDataModule
+from vitfly.training import checkpoint_defaults, default_wandb_offline, finish_wandb
+from vitfly.zoo.policy import PolicyModule, register_policy_classes
+
+SUBCOMMANDS = ("fit", "validate", "test", "predict")
+DEFAULT_LOGGER = {
+    "class_path": "lightning.pytorch.loggers.CSVLogger",
+    "init_args": {"save_dir": "runs", "name": "fit"},
+}
+
+
+class VitflyCLI(LightningCLI):
+    """LightningCLI with vitfly's defaults: forced best/last checkpoints, CSV logger, rich progress bar."""
+
+    def add_arguments_to_parser(self, parser: LightningArgumentParser) -> None:
+        parser.add_lightning_class_args(ModelCheckpoint, "checkpoint")
+        parser.set_defaults({f"checkpoint.{k}": v for k, v in checkpoint_defaults().items()})
+        parser.set_defaults({"trainer.logger": DEFAULT_LOGGER})
+        # the datamodule records use_state with the split; the policy's value is the one that counts
+        parser.link_arguments("model.init_args.use_state", "data.use_state")
+
+    def _instantiate_trainer(self, config: dict[str, Any], callbacks: list) -> Any:
+        listed = config.get("callbacks") or []
+        listed = listed if isinstance(listed, list) else [listed]
+        has_bar = any(isinstance(cb, ProgressBar) for cb in [*listed, *callbacks])
+        if config.get("enable_progress_bar", True) is not False and not has_bar:
+            callbacks = [*callbacks, RichProgressBar()]
+        return super()._instantiate_trainer(config, callbacks)
+
+
+def build_cli(argv: list[str], run: bool = True) -> VitflyCLI:
+    """The LightningCLI object for ``argv`` (``["fit", "--config", ...]``)."""
+    register_policy_classes()  # makes ``model: <registered name>`` resolvable
+    omegaconf = {"parser_mode": "omegaconf"}
+    # argv is passed explicitly because `vitfly` strips nothing; Lightning warns when sys.argv is also set
+    warnings.filterwarnings("ignore", message="LightningCLI's args parameter", category=UserWarning)
+    return VitflyCLI(
+        PolicyModule,
+        TrajectoryDataModule,
+        subclass_mode_model=True,
+        auto_configure_optimizers=False,  # PolicyModule owns Adam and the warm-up schedule
+        seed_everything_default=0,
+        save_config_kwargs={"overwrite": True},
+        parser_kwargs={**omegaconf, **{name: dict(omegaconf) for name in SUBCOMMANDS}},
+        args=argv,
+        run=run,
+    )
+
+
+def run_lightning_cli(argv: list[str]) -> int:
+    """Run ``vitfly fit|validate|test|predict ...``; returns the exit status."""
+    default_wandb_offline()
+    try:
+        build_cli(list(argv))
+    except SystemExit as exit_:  # argument errors and --help
+        code = exit_.code
+        return code if isinstance(code, int) else (0 if code is None else 2)
+    finally:
+        finish_wandb()
+    return 0

@@ -1,0 +1,279 @@
+"""PolicyModule: the LightningModule that trains any registered network by behaviour cloning.
+
+The network stays a plain ``nn.Module`` (``self.net``, built by ``create_model``); this module owns
+the loss (paper eq. 1: MSE between the prediction and ``velocity_cmd / desired_speed`` averaged over
+valid steps), Adam with the paper's linear warm-up (set per step), truncated BPTT by manual optimisation, and the
+validation metrics. ``create_policy(name, **kwargs)`` builds one; in LightningCLI YAML a registered
+name works as the model's class (``model: vit_lstm``), because every registered name has a
+``PolicyModule`` subclass of that name in this module, created on first use.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from typing import Any
+
+import lightning as L
+import torch
+import torch.nn.functional as F
+from torch import nn
+from torchmetrics import MeanSquaredError, Metric
+
+from vitfly.errors import VitflyError
+from vitfly.zoo.base import DepthPolicyNet
+from vitfly.zoo.layers import state_vector
+from vitfly.zoo.registry import create_model, list_models
+
+MIN_SPEED_MPS = 1e-3  # guards the label division; real trajectories fly at >= 1 m/s
+
+
+def normalised_target(velocity_cmd: torch.Tensor, desired_speed: torch.Tensor) -> torch.Tensor:
+    """The label of paper eq. 1: world-frame command (m/s) divided by the desired speed (m/s)."""
+    return velocity_cmd / desired_speed.clamp_min(MIN_SPEED_MPS)
+
+
+def masked_mse(prediction: torch.Tensor, target: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+    """Mean squared error over the valid steps only (padding is indexed away, never multiplied by 0)."""
+    return F.mse_loss(prediction[mask], target[mask])
+
+
+def detach_hidden(hidden: Any) -> Any:
+    """The recurrent state cut from the graph (tensors, or tuples/lists of them; None stays None)."""
+    if hidden is None:
+        return None
+    if isinstance(hidden, torch.Tensor):
+        return hidden.detach()
+    return type(hidden)(detach_hidden(h) for h in hidden)
+
+
+class CommandCosine(Metric):
+    """Mean cosine similarity between predicted and expert command directions, kept as two sums.
+
+    (torchmetrics' CosineSimilarity keeps every sample; this keeps O(1) state and syncs by summing.)
+    """
+
+    full_state_update = False
+    higher_is_better = True
+
+    def __init__(self, eps: float = 1e-8, **kwargs) -> None:
+        super().__init__(**kwargs)
+        self.eps = eps
+        self.add_state("cos_sum", default=torch.tensor(0.0, dtype=torch.float64), dist_reduce_fx="sum")
+        self.add_state("count", default=torch.tensor(0, dtype=torch.long), dist_reduce_fx="sum")
+
+    def update(self, prediction: torch.Tensor, target: torch.Tensor) -> None:
+        """prediction, target: (N, 3) commands of N valid steps."""
+        cos = F.cosine_similarity(prediction, target, dim=-1, eps=self.eps)
+        self.cos_sum += cos.sum().to(torch.float64)
+        self.count += cos.numel()
+
+    def compute(self) -> torch.Tensor:
+        return (self.cos_sum / self.count.clamp_min(1)).to(torch.float32)
+
+
+def lr_factor(epoch_progress: float, warmup_epochs: float, start: float, decay: float, max_epochs: float) -> float:
+    """Learning-rate multiplier after ``epoch_progress`` epochs (fractional) of training (paper code).
+
+    Linear warm-up from ``start`` to 1 over ``warmup_epochs``; then constant when ``decay`` is 1, else
+    exponential decay reaching ``decay`` after a further ``max_epochs`` epochs (the paper code's optional
+    decay uses 0.1).
+    """
+    if epoch_progress < warmup_epochs:
+        return start + (1.0 - start) * epoch_progress / warmup_epochs
+    if decay == 1.0 or max_epochs <= 0:
+        return 1.0
+    return decay ** ((epoch_progress - warmup_epochs) / max_epochs)
+
+
+class PolicyModule(L.LightningModule):
+    """Behaviour cloning of the expert's velocity command with truncated BPTT.
+
+    Args:
+        model: registry name of the network (None: the class's own network, e.g. ``vit_lstm``).
+        use_state: feed desired speed and attitude to the network (False: zeros, paper ablation).
+        model_kwargs: extra keyword arguments of the network's builder (plain values).
+        lr: Adam learning rate after warm-up (paper: 1e-4).
+        warmup_epochs: epochs of linear warm-up (paper: 5); warmup_start_factor: lr factor at epoch 0 (0.1).
+        lr_decay: lr factor reached ``max_epochs`` epochs after warm-up, exponentially (1.0: constant, the
+            paper's setting; 0.1: the paper code's optional decay). The factor is set before every
+            optimiser step from the fractional epoch, so a resumed run continues the same schedule.
+        weight_decay: Adam weight decay.
+        tbptt_steps: time steps per optimiser step; each batch is walked in chunks of this length with
+            the recurrent state carried across chunks, detached (None: the whole batch at once).
+        gradient_clip_val: clip the gradient norm to this value before each step (None: no clipping).
+    """
+
+    default_model = "convnet"
+
+    def __init__(
+        self,
+        model: str | None = None,
+        use_state: bool = True,
+        model_kwargs: dict | None = None,
+        lr: float = 1e-4,
+        warmup_epochs: float = 5,
+        warmup_start_factor: float = 0.1,
+        lr_decay: float = 1.0,
+        weight_decay: float = 0.0,
+        tbptt_steps: int | None = 32,
+        gradient_clip_val: float | None = None,
+    ) -> None:
+        super().__init__()
+        model = model or type(self).default_model  # resolved before save_hyperparameters records it
+        model_kwargs = dict(model_kwargs or {})
+        if tbptt_steps is not None and tbptt_steps < 1:
+            raise VitflyError(f"model.tbptt_steps: expected a positive number of steps or null, got {tbptt_steps}")
+        self.save_hyperparameters()
+        # LightningCLI records the arguments as given (model=None); checkpoints must name the network
+        self.hparams["model"], self.hparams["model_kwargs"] = model, model_kwargs
+        self.automatic_optimization = False
+        self.net: nn.Module = create_model(model, use_state=use_state, **model_kwargs)
+        self.tbptt_steps = tbptt_steps
+        self.gradient_clip_val = gradient_clip_val
+        self.val_mse = MeanSquaredError()
+        self.val_cos = CommandCosine()
+        self.test_mse = MeanSquaredError()
+        self.test_cos = CommandCosine()
+
+    @property
+    def is_recurrent(self) -> bool:
+        return bool(getattr(self.net, "is_recurrent", False))
+
+    # -- forward ---------------------------------------------------------------------------------
+
+    def forward(self, depth, desired_speed, quat, hidden=None):
+        """The network's call contract: (B, T, ...) inputs -> (velocity / desired speed (B, T, 3), hidden)."""
+        return self.net(depth, desired_speed, quat, hidden)
+
+    def _forward_valid(self, depth, desired_speed, quat, hidden, mask):
+        """Forward in which padded frames never enter the image encoder (nor its batch-norm statistics).
+
+        Zoo networks (DepthPolicyNet with the stock forward) encode only the valid frames; padded
+        steps get zero features, which only the masked-out outputs after them can see.
+        """
+        net = self.net
+        if mask.all() or not isinstance(net, DepthPolicyNet) or type(net).forward is not DepthPolicyNet.forward:
+            return net(depth, desired_speed, quat, hidden)
+        b, t = mask.shape
+        valid = net.encode(depth[mask])
+        features = valid.new_zeros((b, t, valid.shape[-1]))
+        features[mask] = valid
+        return net.head(features, state_vector(desired_speed, quat, net.use_state), hidden)
+
+    # -- training: truncated BPTT with manual optimisation -----------------------------------------
+
+    def training_step(self, batch: Mapping[str, torch.Tensor], batch_idx: int) -> torch.Tensor:
+        opt = self.optimizers()
+        mask = batch["mask"]
+        k = self.tbptt_steps or mask.shape[1]
+        keys = ("depth", "desired_speed", "quat", "velocity_cmd", "mask")
+        chunks = zip(*(batch[key].split(k, dim=1) for key in keys), strict=True)
+        hidden = None
+        loss_sum = torch.zeros((), device=mask.device)
+        n_valid = 0
+        for depth, speed, quat, cmd, cmask in chunks:
+            steps = int(cmask.any(dim=0).nonzero().max()) + 1 if cmask.any() else 0
+            if steps == 0:  # trajectories are padded at the end: nothing valid follows
+                break
+            depth, speed, quat, cmd, cmask = (x[:, :steps] for x in (depth, speed, quat, cmd, cmask))
+            prediction, hidden = self._forward_valid(depth, speed, quat, hidden, cmask)
+            loss = masked_mse(prediction, normalised_target(cmd, speed), cmask)
+            self._set_lr(opt, batch_idx)
+            opt.zero_grad()
+            self.manual_backward(loss)
+            if self.gradient_clip_val:
+                self.clip_gradients(opt, gradient_clip_val=self.gradient_clip_val, gradient_clip_algorithm="norm")
+            opt.step()
+            hidden = detach_hidden(hidden)
+            n = int(cmask.sum())
+            loss_sum += loss.detach() * n
+            n_valid += n
+        mean_loss = loss_sum / max(n_valid, 1)
+        self.log("train/loss", mean_loss, on_step=True, on_epoch=True, prog_bar=True, batch_size=max(n_valid, 1))
+        self.log("lr", opt.param_groups[0]["lr"], on_step=False, on_epoch=True)
+        return mean_loss
+
+    def _set_lr(self, opt, batch_idx: int) -> None:
+        hp = self.hparams
+        trainer = self.trainer
+        batches = trainer.num_training_batches if trainer.num_training_batches not in (0, float("inf")) else 1
+        progress = self.current_epoch + batch_idx / batches
+        max_epochs = trainer.max_epochs if trainer.max_epochs and trainer.max_epochs > 0 else 0
+        factor = lr_factor(progress, hp.warmup_epochs, hp.warmup_start_factor, hp.lr_decay, max_epochs)
+        for group in opt.param_groups:
+            group["lr"] = hp.lr * factor
+
+    def configure_optimizers(self):
+        hp = self.hparams
+        return torch.optim.Adam(self.net.parameters(), lr=hp.lr * hp.warmup_start_factor, weight_decay=hp.weight_decay)
+
+    # -- validation / test / predict ------------------------------------------------------------
+
+    def _evaluate(self, batch, mse: MeanSquaredError, cos: CommandCosine, prefix: str) -> None:
+        prediction, _ = self(batch["depth"], batch["desired_speed"], batch["quat"])
+        mask = batch["mask"]
+        pred = prediction[mask]
+        target = normalised_target(batch["velocity_cmd"], batch["desired_speed"])[mask]
+        mse.update(pred, target)
+        cos.update(pred, target)
+        n = int(mask.sum())
+        self.log(f"{prefix}/loss", mse, on_step=False, on_epoch=True, prog_bar=True, batch_size=n)
+        self.log(f"{prefix}/cosine", cos, on_step=False, on_epoch=True, batch_size=n)
+
+    def validation_step(self, batch, batch_idx: int) -> None:
+        self._evaluate(batch, self.val_mse, self.val_cos, "val")
+
+    def test_step(self, batch, batch_idx: int) -> None:
+        self._evaluate(batch, self.test_mse, self.test_cos, "test")
+
+    def predict_step(self, batch, batch_idx: int, dataloader_idx: int = 0) -> dict[str, torch.Tensor]:
+        """Per step: ``velocity`` (network output, command / desired speed), ``velocity_mps`` (times the
+        desired speed, world frame), plus ``mask``, ``traj_index`` and ``start`` to trace each row back."""
+        prediction, _ = self(batch["depth"], batch["desired_speed"], batch["quat"])
+        out = {
+            "velocity": prediction,
+            "velocity_mps": prediction * batch["desired_speed"],
+            "mask": batch["mask"],
+            "traj_index": batch["traj_index"],
+        }
+        if "start" in batch:
+            out["start"] = batch["start"]
+        return out
+
+
+_POLICY_CLASSES: dict[str, type[PolicyModule]] = {}
+
+
+def policy_class(name: str) -> type[PolicyModule]:
+    """The PolicyModule subclass named after registered network ``name`` (its default ``model``)."""
+    if name not in list_models():
+        raise VitflyError(f"unknown model {name!r}; known models: {', '.join(list_models())}")
+    cls = _POLICY_CLASSES.get(name)
+    if cls is None:
+        cls = type(
+            name,
+            (PolicyModule,),
+            {"__module__": __name__, "default_model": name, "__doc__": f"PolicyModule training the {name!r} network."},
+        )
+        _POLICY_CLASSES[name] = cls
+    return cls
+
+
+def register_policy_classes() -> list[str]:
+    """Create the per-name subclasses for every registered network (so ``model: NAME`` resolves)."""
+    names = list_models()
+    for name in names:
+        policy_class(name)
+    return names
+
+
+def create_policy(name: str, **kwargs) -> PolicyModule:
+    """The LightningModule that trains registered network ``name`` (kwargs: PolicyModule's arguments)."""
+    return policy_class(name)(**kwargs)
+
+
+def __getattr__(attr: str):
+    # ``vitfly.zoo.policy.vit_lstm`` imports by path (config files and checkpoints name it that way)
+    if attr in list_models():
+        return policy_class(attr)
+    raise AttributeError(f"module {__name__!r} has no attribute {attr!r}")
