@@ -1,0 +1,303 @@
+"""Expert data collection: fly the privileged expert and append trajectories to an HDF5 dataset.
+
+Trajectory k's scene seed and desired speed derive only from (config.seed, k), trajectories are
+written in index order, and each one is flown in isolation, so the file is the same whatever the
+number of worker processes. Each append is atomic (``vitfly.datamodules.schema.TrajectoryWriter``):
+after a kill -9, running the same collection again skips the committed trajectories and goes on.
+
+Example::
+
+    cfg = load_collect_config("configs/collect/spheres.yaml", overrides={"trajectories": 10})
+    summary = collect(cfg, "data/spheres.h5")
+    summary.trajectories, summary.frames, summary.success_by_speed
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import os
+import time
+from collections.abc import Iterator
+from concurrent.futures import FIRST_COMPLETED, Future, ProcessPoolExecutor, wait
+from dataclasses import dataclass, field
+from multiprocessing import get_context
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import yaml
+
+from vitfly.datamodules.schema import TrajectoryRecord, TrajectoryWriter, encode_depth
+from vitfly.errors import VitflyError
+from vitfly.sim.camera import CameraConfig
+from vitfly.sim.policies import ExpertPolicy
+from vitfly.sim.rollout import RolloutConfig, TaskConfig, run_episodes
+from vitfly.sim.scenes import ENVS, make_scene, scene_config
+
+
+@dataclass(frozen=True)
+class CollectConfig:
+    """How a dataset is made. Every field can be set in the YAML; some also by flags."""
+
+    env: str = "spheres"
+    preset: str = "medium"
+    trajectories: int = 100
+    speeds: tuple[float, float] = (3.0, 7.0)  # m/s, each trajectory's speed uniform in [min, max]
+    seed: int = 0
+    workers: int = 1
+    physics_hz: float = 240.0
+    control_hz: float = 30.0
+    timeout_s: float = 40.0
+    body_radius_m: float = 0.0
+    camera: CameraConfig = field(default_factory=CameraConfig)
+
+    def validate(self, source: str = "config") -> CollectConfig:
+        if self.env not in ENVS:
+            raise VitflyError(f"{source}: field env is {self.env!r}; expected one of {', '.join(ENVS)}")
+        scene_config(self.env, self.preset)  # raises on an unknown preset
+        lo, hi = self.speeds
+        if not (0 < lo <= hi):
+            raise VitflyError(f"{source}: field speeds is [{lo}, {hi}]; expected 0 < min <= max (m/s)")
+        if self.trajectories < 1:
+            raise VitflyError(f"{source}: field trajectories is {self.trajectories}; expected >= 1")
+        if self.workers < 1:
+            raise VitflyError(f"{source}: field workers is {self.workers}; expected >= 1")
+        try:
+            self.rollout_config().physics_steps_per_tick  # noqa: B018 - validates the rates
+        except ValueError as err:
+            raise VitflyError(f"{source}: {err}") from None
+        return self
+
+    def rollout_config(self) -> RolloutConfig:
+        return RolloutConfig(
+            physics_hz=self.physics_hz,
+            control_hz=self.control_hz,
+            task=TaskConfig(timeout_s=self.timeout_s, body_radius_m=self.body_radius_m),
+            camera=self.camera,
+            record_depth=True,
+        )
+
+    def content_key(self) -> dict:
+        """The fields that decide the data (not how many trajectories, nor how many workers)."""
+        d = dataclasses.asdict(self)
+        d.pop("trajectories")
+        d.pop("workers")
+        d["speeds"] = list(d["speeds"])
+        return d
+
+
+def load_collect_config(path: str | os.PathLike | None, overrides: dict[str, Any] | None = None) -> CollectConfig:
+    """Read a collect YAML (safe loader), apply ``overrides`` (flags; None values ignored), validate."""
+    data: dict[str, Any] = {}
+    source = str(path) if path is not None else "collect config"
+    if path is not None:
+        try:
+            with open(path) as f:
+                data = yaml.safe_load(f) or {}
+        except FileNotFoundError:
+            raise VitflyError(f"{path}: config file not found") from None
+        except yaml.YAMLError as err:
+            raise VitflyError(f"{path}: not valid YAML ({str(err).splitlines()[0]})") from None
+        if not isinstance(data, dict):
+            raise VitflyError(f"{path}: expected a mapping of collect settings at the top level")
+    for key, value in (overrides or {}).items():
+        if value is not None:
+            data[key] = value
+    return _from_mapping(CollectConfig, data, source, "").validate(source)
+
+
+def _from_mapping(cls, data: dict, source: str, prefix: str):
+    """Build dataclass ``cls`` from a mapping, naming any unknown or mistyped key."""
+    fields = {f.name: f for f in dataclasses.fields(cls)}
+    kwargs = {}
+    for key, value in data.items():
+        if key not in fields:
+            raise VitflyError(f"{source}: unknown key {prefix}{key!r}; expected one of {', '.join(sorted(fields))}")
+        default = getattr(cls(), key)
+        name = f"{prefix}{key}"
+        if dataclasses.is_dataclass(default):
+            if not isinstance(value, dict):
+                raise VitflyError(f"{source}: field {name} must be a mapping")
+            kwargs[key] = _from_mapping(type(default), value, source, f"{name}.")
+        elif isinstance(default, tuple):
+            if not isinstance(value, list | tuple) or len(value) != len(default):
+                raise VitflyError(f"{source}: field {name} must be a list of {len(default)} numbers")
+            kwargs[key] = tuple(_number(v, type(default[0]), source, name) for v in value)
+        else:
+            kwargs[key] = _number(value, type(default), source, name)
+    return cls(**kwargs)
+
+
+def _number(value, kind: type, source: str, name: str):
+    if kind is bool:
+        if not isinstance(value, bool):
+            raise VitflyError(f"{source}: field {name} must be true or false, got {value!r}")
+        return value
+    if kind is str:
+        if not isinstance(value, str):
+            raise VitflyError(f"{source}: field {name} must be a string, got {value!r}")
+        return value
+    if isinstance(value, bool) or not isinstance(value, int | float):
+        raise VitflyError(f"{source}: field {name} must be a number, got {value!r}")
+    if kind is int:
+        if float(value) != int(value):
+            raise VitflyError(f"{source}: field {name} must be a whole number, got {value!r}")
+        return int(value)
+    return float(value)
+
+
+def trajectory_spec(seed: int, index: int, speeds: tuple[float, float]) -> tuple[int, float]:
+    """(scene seed, desired speed m/s) of trajectory ``index``; depends only on (seed, index)."""
+    rng = np.random.default_rng([int(seed), int(index)])
+    scene_seed = int(rng.integers(0, 2**31 - 1))
+    speed = round(float(rng.uniform(speeds[0], speeds[1])), 2)
+    return scene_seed, speed
+
+
+def fly_trajectory(config: CollectConfig, index: int) -> TrajectoryRecord:
+    """Fly the expert on trajectory ``index`` of ``config`` and return its dataset record."""
+    scene_seed, speed = trajectory_spec(config.seed, index, config.speeds)
+    scene = make_scene(config.env, config.preset, scene_seed)
+    result = run_episodes([scene], [speed], ExpertPolicy(), config.rollout_config())[0]
+    log, summary = result.log, result.summary
+    return TrajectoryRecord(
+        depth=encode_depth(log.depth),
+        desired_speed=speed,
+        quat=log.quat,
+        position=log.position,
+        velocity=log.velocity,
+        velocity_cmd=log.command,
+        time=log.time,
+        collision=log.contact,
+        env=config.env,
+        seed=scene_seed,
+        n_collisions=summary.n_collisions,
+        success=summary.success,
+    )
+
+
+@dataclass
+class CollectSummary:
+    """What a collection run left in the file (all trajectories, including resumed ones)."""
+
+    path: str
+    trajectories: int
+    frames: int
+    new_trajectories: int
+    wall_s: float
+    success_by_speed: dict[float, tuple[int, int]]  # speed bin (m/s, nearest 1) -> (successes, trials)
+
+
+def _ordered_records(config: CollectConfig, indices: list[int]) -> Iterator[TrajectoryRecord]:
+    """Records for ``indices`` in order, flown here or by ``config.workers`` processes."""
+    if config.workers == 1 or len(indices) <= 1:
+        for k in indices:
+            yield fly_trajectory(config, k)
+        return
+    # spawn: no fork of a process that may hold HDF5 handles or threads
+    with ProcessPoolExecutor(max_workers=config.workers, mp_context=get_context("spawn")) as pool:
+        pending: dict[int, Future] = {}
+        queue = iter(indices)
+        done_buffer: dict[int, TrajectoryRecord] = {}
+        next_index = 0
+        for k in queue:  # prime: a bounded number in flight keeps memory flat
+            pending[k] = pool.submit(fly_trajectory, config, k)
+            if len(pending) >= 2 * config.workers:
+                break
+        while next_index < len(indices):
+            want = indices[next_index]
+            if want in done_buffer:
+                yield done_buffer.pop(want)
+                next_index += 1
+                continue
+            finished, _ = wait(list(pending.values()), return_when=FIRST_COMPLETED)
+            for k in [k for k, fut in pending.items() if fut in finished]:
+                done_buffer[k] = pending.pop(k).result()
+                nxt = next(queue, None)
+                if nxt is not None:
+                    pending[nxt] = pool.submit(fly_trajectory, config, nxt)
+
+
+def collect(config: CollectConfig, out: str | os.PathLike, progress: bool = True) -> CollectSummary:
+    """Fly ``config.trajectories`` expert trajectories into ``out`` (created, or resumed)."""
+    from rich.console import Console
+    from rich.progress import (
+        BarColumn,
+        MofNCompleteColumn,
+        Progress,
+        TextColumn,
+        TimeElapsedColumn,
+        TimeRemainingColumn,
+    )
+
+    out = Path(out)
+    config.validate()
+    meta = {"made_by": "vitfly collect", "collect": config.content_key()}
+    start = time.perf_counter()
+    frames = _existing_frames(out)
+    with TrajectoryWriter(out, config=meta, depth_max_m=config.camera.max_range_m) as writer:
+        stored = writer.config.get("collect")
+        if stored is not None and stored != json.loads(json.dumps(meta["collect"])):
+            raise VitflyError(
+                f"{out}: was collected with different settings (attribute config.collect); "
+                "rerun with the same config to resume, or choose another --out"
+            )
+        done = writer.num_trajectories
+        expected = [trajectory_spec(config.seed, k, config.speeds)[0] for k in range(done)]
+        if writer.seeds() != expected:
+            raise VitflyError(f"{out}: its trajectory seeds do not match --seed {config.seed}; choose another --out")
+        todo = list(range(done, config.trajectories))
+        new = 0
+        with Progress(
+            TextColumn("[bold]collect[/] {task.description}"),
+            BarColumn(),
+            MofNCompleteColumn(),
+            TextColumn("trajectories, {task.fields[frames]} frames"),
+            TimeElapsedColumn(),
+            TextColumn("ETA"),
+            TimeRemainingColumn(),
+            console=Console(stderr=True),
+            disable=not progress,
+        ) as bar:
+            task = bar.add_task(config.env, total=config.trajectories, completed=done, frames=frames)
+            for rec in _ordered_records(config, todo):
+                writer.append(rec)
+                new += 1
+                frames += rec.length
+                bar.update(task, advance=1, frames=frames)
+    return summarize(out, new, time.perf_counter() - start)
+
+
+def _existing_frames(path: Path) -> int:
+    """Frames already committed in ``path`` (0 if it does not exist; the writer reports bad files)."""
+    if not path.exists():
+        return 0
+    try:
+        return summarize(path).frames
+    except (VitflyError, OSError):
+        return 0
+
+
+def summarize(path: str | os.PathLike, new_trajectories: int = 0, wall_s: float = 0.0) -> CollectSummary:
+    """Counts and expert success rate per 1 m/s speed bin of a collected dataset."""
+    from vitfly.datamodules.schema import open_trajectories
+
+    with open_trajectories(path, check_values=False) as data:
+        n = len(data)
+        frames = int(np.sum(data.lengths)) if n else 0
+        by_speed: dict[float, list[int]] = {}
+        for m in range(n):
+            meta = data.meta(m)
+            key = float(round(float(meta["desired_speed"])))
+            s = by_speed.setdefault(key, [0, 0])
+            s[0] += int(bool(meta["success"]))
+            s[1] += 1
+    return CollectSummary(
+        path=str(path),
+        trajectories=n,
+        frames=frames,
+        new_trajectories=new_trajectories,
+        wall_s=wall_s,
+        success_by_speed={k: (v[0], v[1]) for k, v in sorted(by_speed.items())},
+    )
