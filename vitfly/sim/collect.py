@@ -113,7 +113,7 @@ def _from_mapping(cls, data: dict, source: str, prefix: str):
     kwargs = {}
     for key, value in data.items():
         if key not in fields:
-            raise VitflyError(f"{source}: unknown key {prefix}{key!r}; expected one of {', '.join(sorted(fields))}")
+            raise VitflyError(f"{source}: unknown key '{prefix}{key}'; expected one of {', '.join(sorted(fields))}")
         default = getattr(cls(), key)
         name = f"{prefix}{key}"
         if dataclasses.is_dataclass(default):

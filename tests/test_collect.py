@@ -1,0 +1,153 @@
+"""`vitfly collect` end to end: the file it writes, worker invariance, kill -9 resume, bad config."""
+
+import os
+import signal
+import subprocess
+import sys
+import time
+
+import h5py
+import numpy as np
+import pytest
+
+from vitfly.cli import main
+from vitfly.datamodules.schema import open_trajectories
+from vitfly.sim.collect import load_collect_config, trajectory_spec
+
+TINY = """\
+env: spheres
+preset: medium
+trajectories: 3
+speeds: [6.5, 7.0]
+seed: 11
+camera:
+  max_range_m: 10.0
+"""
+
+
+def read_all(path) -> dict[str, np.ndarray]:
+    with h5py.File(path, "r") as f:
+        out = {}
+        f.visititems(lambda name, obj: out.__setitem__(name, obj[()]) if isinstance(obj, h5py.Dataset) else None)
+    return out
+
+
+def assert_same_data(a, b):
+    da, db = read_all(a), read_all(b)
+    assert sorted(da) == sorted(db)
+    for name in da:
+        np.testing.assert_array_equal(da[name], db[name], err_msg=name)
+
+
+@pytest.fixture(scope="module")
+def tiny_config(tmp_path_factory):
+    path = tmp_path_factory.mktemp("cfg") / "tiny.yaml"
+    path.write_text(TINY)
+    return path
+
+
+@pytest.fixture(scope="module")
+def reference(tiny_config, tmp_path_factory):
+    """Four trajectories collected in one process, in one go."""
+    out = tmp_path_factory.mktemp("ref") / "ref.h5"
+    assert (
+        main(["collect", "--config", str(tiny_config), "--out", str(out), "--trajectories", "4", "--no-progress"]) == 0
+    )
+    return out
+
+
+def test_collect_writes_the_schema(reference, capsys):
+    cfg = load_collect_config(None, {"seed": 11, "speeds": [6.5, 7.0]})
+    with open_trajectories(reference) as data:
+        assert len(data) == 4
+        for m in range(4):
+            meta = data.meta(m)
+            seed, speed = trajectory_spec(11, m, cfg.speeds)
+            assert int(meta["seed"]) == seed
+            assert float(meta["desired_speed"]) == pytest.approx(speed, abs=1e-5)
+            rec = data[m]
+            t = rec.length
+            assert t > 200  # 60 m at <= 7 m/s, 30 Hz
+            assert rec.depth.shape == (t, 60, 90) and rec.depth.dtype == np.uint8
+            assert rec.depth.min() < 255  # obstacles or ground in view
+            np.testing.assert_allclose(np.diff(rec.time), 1 / 30, atol=1e-9)
+            assert rec.position[-1, 0] > 59.0  # flown to the goal
+            # labels are the expert's commands: desired speed in cruise, unless every waypoint was
+            # blocked (the drone within an inflated obstacle) and it fell back to (0.5, 0, 0.25)
+            cruise = (rec.position[:, 0] >= 2) & (rec.position[:, 2] >= 2)
+            fallback = np.all(np.isclose(rec.velocity_cmd, [0.5, 0.0, 0.25]), axis=1)
+            assert fallback.mean() < 0.1
+            norms = np.linalg.norm(rec.velocity_cmd[cruise & ~fallback], axis=1)
+            np.testing.assert_allclose(norms, speed, rtol=1e-5)
+    with h5py.File(reference, "r") as f:
+        assert float(f.attrs["depth_max_m"]) == 10.0
+
+
+def test_output_is_the_same_whatever_the_workers(reference, tiny_config, tmp_path, capsys):
+    out = tmp_path / "w2.h5"
+    args = ["collect", "--config", str(tiny_config), "--out", str(out), "--trajectories", "4", "--workers", "2"]
+    assert main([*args, "--no-progress"]) == 0
+    assert_same_data(reference, out)
+    printed = capsys.readouterr().out
+    assert "4 trajectories" in printed and "expert success" in printed
+
+
+def test_kill_9_then_rerun_resumes_to_the_same_file(reference, tiny_config, tmp_path):
+    out = tmp_path / "killed.h5"
+    cmd = [sys.executable, "-m", "vitfly.cli", "collect", "--config", str(tiny_config), "--out", str(out)]
+    cmd += ["--trajectories", "4", "--no-progress"]
+    proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    try:
+        deadline = time.monotonic() + 120
+        committed = 0
+        while committed < 1 and time.monotonic() < deadline and proc.poll() is None:
+            time.sleep(0.05)
+            if out.exists():
+                try:
+                    with open_trajectories(out, check_values=False) as data:
+                        committed = len(data)
+                except Exception:  # noqa: BLE001 - the writer may be mid-creation
+                    committed = 0
+        assert proc.poll() is None, "collect finished before it could be killed; make the test config longer"
+        os.kill(proc.pid, signal.SIGKILL)
+        proc.wait()
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    with open_trajectories(out, check_values=False) as data:
+        survived = len(data)
+    assert 1 <= survived < 4
+    result = subprocess.run(cmd, capture_output=True, text=True, timeout=300)
+    assert result.returncode == 0, result.stderr
+    assert f"({4 - survived} new)" in result.stdout
+    assert_same_data(reference, out)
+
+
+def test_unknown_config_key_is_one_line_error_and_no_output(tmp_path, capsys):
+    cfg = tmp_path / "bad.yaml"
+    cfg.write_text(TINY + "colour: blue\n")
+    out = tmp_path / "never.h5"
+    assert main(["collect", "--config", str(cfg), "--out", str(out)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "colour" in err and str(cfg) in err
+    assert not out.exists()
+    cfg.write_text(TINY.replace("max_range_m: 10.0", "max_range: 10.0"))
+    assert main(["collect", "--config", str(cfg), "--out", str(out)]) == 2
+    assert "camera.max_range" in capsys.readouterr().err
+    assert main(["collect", "--config", str(tiny_config_path(tmp_path)), "--out", str(out), "--speeds", "5", "2"]) == 2
+    assert "speeds" in capsys.readouterr().err
+    assert not out.exists()
+
+
+def tiny_config_path(tmp_path):
+    p = tmp_path / "ok.yaml"
+    p.write_text(TINY)
+    return p
+
+
+def test_resume_with_other_settings_is_refused(reference, tiny_config, tmp_path, capsys):
+    out = tmp_path / "copy.h5"
+    out.write_bytes(reference.read_bytes())
+    assert main(["collect", "--config", str(tiny_config), "--out", str(out), "--seed", "12", "--no-progress"]) == 2
+    assert "different settings" in capsys.readouterr().err
