@@ -73,6 +73,20 @@ class Airframe:
         return math.sqrt(self.mass_kg * GRAVITY_MPS2 / (4 * self.thrust_coeff))
 
 
+def quat_wxyz_to_matrix(q: np.ndarray) -> np.ndarray:
+    """Rotation matrices (N, 3, 3), body-to-world, from unit quaternions (N, 4) (w, x, y, z)."""
+    q = np.asarray(q, dtype=np.float64).reshape(-1, 4)
+    w, x, y, z = q[:, 0], q[:, 1], q[:, 2], q[:, 3]
+    return np.stack(
+        [
+            np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)], axis=-1),
+            np.stack([2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)], axis=-1),
+            np.stack([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], axis=-1),
+        ],
+        axis=1,
+    )
+
+
 class DroneState(NamedTuple):
     """One drone's state. Tuples of floats, world frame unless said otherwise.
 
