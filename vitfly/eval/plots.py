@@ -172,5 +172,5 @@ def write_standard_plots(out_dir: str | Path, rows: Sequence[dict], records: Seq
         scene = scene_loader(env, recs[0].preset, seed) if scene_loader is not None else None
         written[f"paths_{env}"] = plot_paths(
             recs, out / f"paths_{env}.png", scene,
-            title=f"{env}: scene seed {seed}, {len(recs)} trials (top-down, then side)")
+            title=f"{env}: scene seed {seed}, {len(recs)} trial(s) (top-down, then side)")
     return written

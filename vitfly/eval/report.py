@@ -86,7 +86,7 @@ def print_table(rows: Sequence[dict], title: str = "closed-loop evaluation") -> 
         table.add_column(h, justify="left" if i < 2 else "right")
     for cells in body:
         table.add_row(*cells)
-    Console().print(table)
+    Console(width=max(Console().width, 170)).print(table)  # logs and pipes get the full table
 
 
 def write_reports(out_dir: str | Path, rows: Sequence[dict], title: str | None = None) -> dict[str, Path]:

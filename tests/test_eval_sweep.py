@@ -1,0 +1,137 @@
+"""Evaluation sweeps end to end: the real simulator, real policies, the real `vitfly evaluate` command."""
+
+import csv
+import json
+
+import pytest
+import torch
+
+from vitfly.cli import main
+from vitfly.eval import records
+from vitfly.eval.config import SweepConfig, load_sweep_config
+from vitfly.eval.sweep import derive_scene_seed, make_batches, plan_trials, select_shard
+
+# short trials: a 1.5 s timeout ends each one after ~45 control ticks
+FAST = ["--timeout", "1.5", "--no-gif", "--no-plots", "--no-progress", "--num-envs", "4"]
+
+
+def evaluate(out, *args):
+    return main(["evaluate", "--out", str(out), *FAST, *args])
+
+
+def lines(path):
+    return [json.loads(x) for x in path.read_text().splitlines()]
+
+
+def test_trial_plan_seeds_shards_and_batches():
+    cfg = SweepConfig(env=["spheres", "trees"], speeds=[3.0, 5.0], trials=3, seed=7)
+    plan = plan_trials(cfg)
+    assert len(plan) == 12
+    # a trial's scene depends on (seed, env, trial) only: the same at every speed, for every policy
+    assert {s.scene_seed for s in plan if s.env == "spheres" and s.trial == 1} == {derive_scene_seed(7, "spheres", 1)}
+    assert len({s.scene_seed for s in plan}) == 6
+    assert derive_scene_seed(8, "spheres", 1) != derive_scene_seed(7, "spheres", 1)
+    shards = [select_shard(plan, i, 3) for i in range(3)]
+    assert sorted(map(repr, sum(shards, []))) == sorted(map(repr, plan))
+    batches = make_batches(plan, 4)
+    assert [len(b) for b in batches] == [4, 4, 4]  # full batches, slow trials first, then fast ones
+    assert [[s.speed for s in b] for b in batches] == [[3.0] * 4, [3.0, 3.0, 5.0, 5.0], [5.0] * 4]
+
+
+def test_config_file_and_overrides(tmp_path):
+    f = tmp_path / "eval.yaml"
+    f.write_text("env: trees\nspeeds: [3, 7]\ntrials: 4\n")
+    cfg = load_sweep_config(f, {"trials": 2, "seed": None})
+    assert (cfg.env, cfg.speeds, cfg.trials, cfg.seed) == (["trees"], [3.0, 7.0], 2, 0)
+    f.write_text("trails: 4\n")
+    with pytest.raises(Exception, match="eval.yaml: unknown field 'trails'"):
+        load_sweep_config(f)
+    with pytest.raises(Exception, match="shard"):
+        load_sweep_config(None, {"shard": "2/2"})
+
+
+def test_evaluate_resumes_and_shards_merge(tmp_path, capsys):
+    full, a, b, merged = (tmp_path / n for n in ("full", "a", "b", "merged"))
+    assert evaluate(full, "--policy", "straight", "--speeds", "3", "6", "--trials", "2") == 0
+    recs = lines(full / "trials.jsonl")
+    assert len(recs) == 4
+    r = recs[0]
+    assert r["policy"] == "straight" and r["outcome"]["end_reason"] == "timeout"
+    assert set(r["path"]) == {"time", "position", "velocity", "command", "contact"}
+    assert len(r["path"]["time"]) == len(r["path"]["position"]) >= 40
+    assert r["path"]["command"][5] == [r["speed"], 0.0, 0.0]  # straight ahead at the desired speed
+    assert r["extra"]["scene"]["env"] == "spheres"
+    with open(full / "summary.csv") as fh:
+        rows = list(csv.DictReader(fh))
+    assert [(x["policy"], x["speed"], x["trials"]) for x in rows] == [("straight", "3.0", "2"),
+                                                                      ("straight", "6.0", "2")]
+
+    # rerun: nothing to fly, file untouched
+    before = (full / "trials.jsonl").read_bytes()
+    capsys.readouterr()
+    assert evaluate(full, "--policy", "straight", "--speeds", "3", "6", "--trials", "2") == 0
+    assert "0 trials flown, 4 already done" in capsys.readouterr().out
+    assert (full / "trials.jsonl").read_bytes() == before
+
+    # a kill in the middle of the last trial's line: that trial is flown again, the others are not
+    data = before.splitlines(keepends=True)
+    (full / "trials.jsonl").write_bytes(b"".join(data[:3]) + data[3][:500])
+    assert evaluate(full, "--policy", "straight", "--speeds", "3", "6", "--trials", "2") == 0
+    assert "1 trials flown, 3 already done" in capsys.readouterr().out
+    assert len(records.read_records(full / "trials.jsonl")) == 4
+
+    # two shards in separate directories, merged, give the same trials as the unsharded sweep
+    for out, shard in ((a, "0/2"), (b, "1/2")):
+        assert evaluate(out, "--policy", "straight", "--speeds", "3", "6", "--trials", "2", "--shard", shard) == 0
+    assert len(lines(a / "trials.jsonl")) == len(lines(b / "trials.jsonl")) == 2
+    assert main(["evaluate", "--out", str(merged), "--merge", str(a), str(b), "--no-plots"]) == 0
+    got = {x.key: x for x in records.read_sweep(merged)}
+    want = {x.key: x for x in records.read_sweep(full)}
+    assert got.keys() == want.keys()
+    for key, rec in want.items():  # the simulator is deterministic: the same paths whatever the batching
+        assert got[key].path == rec.path
+        for name, value in rec.metrics.items():
+            if name != "processing_ms":  # wall time
+                assert got[key].metrics[name] == pytest.approx(value, nan_ok=True), name
+
+
+def test_expert_and_learned_policy_share_scenes_and_report(tmp_path, capsys):
+    from vitfly.zoo import create_model, save_checkpoint
+
+    torch.manual_seed(0)
+    ckpt = tmp_path / "tiny_convnet.ckpt"
+    save_checkpoint(create_model("convnet"), "convnet", True, ckpt)
+    out = tmp_path / "eval"
+    assert evaluate(out, "--policy", "expert", "--speeds", "4", "--trials", "2") == 0
+    assert evaluate(out, "--policy", str(ckpt), "--speeds", "4", "--trials", "2", "--threads", "1") == 0
+    table = capsys.readouterr().out
+    assert "tiny_convnet" in table and "expert" in table
+    recs = records.read_sweep(out)
+    assert {r.policy for r in recs} == {"expert", "tiny_convnet"}
+    seeds = {p: sorted(r.scene_seed for r in recs if r.policy == p) for p in ("expert", "tiny_convnet")}
+    assert seeds["expert"] == seeds["tiny_convnet"]
+    learned = [r for r in recs if r.policy == "tiny_convnet"]
+    assert all(r.metrics["processing_ms"] > 0 for r in learned)
+    assert all(r.extra["backend"] == "eager" for r in learned)
+    # commands are the paper's deployment: norm = desired speed
+    cmd = learned[0].path_arrays()["command"]
+    assert (cmd**2).sum(axis=1) ** 0.5 == pytest.approx(4.0, abs=1e-3)
+
+
+def test_bad_policy_is_one_line_and_no_output(tmp_path, capsys):
+    out = tmp_path / "x"
+    assert evaluate(out, "--policy", str(tmp_path / "missing.ckpt")) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "missing.ckpt" in err[0] and err[0].startswith("vitfly: error:")
+    assert not (out / "trials.jsonl").exists()
+
+
+def test_worker_processes_give_the_same_trials(tmp_path):
+    one, two = tmp_path / "one", tmp_path / "two"
+    args = ["--policy", "expert", "--speeds", "5", "--trials", "2", "--num-envs", "1"]
+    assert evaluate(one, *args) == 0
+    assert evaluate(two, *args, "--workers", "2") == 0
+    a = {r.key: r for r in records.read_sweep(one)}
+    b = {r.key: r for r in records.read_sweep(two)}
+    assert a.keys() == b.keys() and len(a) == 2
+    assert all(a[k].path == b[k].path for k in a)

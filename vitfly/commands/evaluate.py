@@ -1,0 +1,58 @@
+"""``vitfly evaluate``: fly a policy closed-loop over envs x speeds x trials and score it (resumable)."""
+
+from __future__ import annotations
+
+import argparse
+
+from vitfly.eval.config import ENVS, load_sweep_config
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--config", help="evaluation YAML (e.g. configs/eval/spheres.yaml); flags override it")
+    parser.add_argument("--policy", help="a checkpoint path, 'expert' or 'straight' (config default: expert)")
+    parser.add_argument("--arch", help="architecture of an original-project checkpoint (e.g. vit_lstm)")
+    parser.add_argument("--name", help="policy label in the reports (default: expert/straight/checkpoint stem)")
+    parser.add_argument("--env", nargs="+", choices=ENVS, help="environment(s) (config default: spheres)")
+    parser.add_argument("--preset", help="scene density preset: easy, medium, hard")
+    parser.add_argument("--speeds", type=float, nargs="+", help="desired speeds, m/s (config default: 3 4 5 6 7)")
+    parser.add_argument("--trials", type=int, help="trials per (env, speed) (config default: 10)")
+    parser.add_argument("--seed", type=int, help="sweep seed: scene seeds derive from (seed, env, trial)")
+    parser.add_argument("--out", help="output directory: trials.jsonl, summary.csv/.md, plots (default runs/eval)")
+    parser.add_argument("--num-envs", type=int, help="scenes stepped in lockstep per batched policy call")
+    parser.add_argument("--workers", type=int, help="worker processes")
+    parser.add_argument("--shard", help="i/n: fly only shard i (0-based) of n; shards' outputs merge")
+    parser.add_argument("--device", help="torch device for learned policies (cpu, cuda)")
+    parser.add_argument("--threads", type=int, help="torch threads per worker")
+    parser.add_argument("--backend", choices=("eager", "onnxruntime"), help="inference back end (learned policies)")
+    parser.add_argument("--timeout", type=float, dest="timeout_s", help="trial timeout, s (default: scales w/ speed)")
+    parser.add_argument("--no-gif", action="store_true", help="skip the depth GIF with the command arrow")
+    parser.add_argument("--no-plots", action="store_true", help="skip the plots")
+    parser.add_argument("--wandb-project", help="also log the summary and plots to this wandb project")
+    parser.add_argument("--merge", nargs="+", metavar="DIR",
+                        help="only merge the trials of these sweep directories into --out and write its reports")
+    parser.add_argument("--report-only", action="store_true", help="only (re)write the reports of --out")
+    parser.add_argument("--no-progress", action="store_true", help="no progress bar")
+
+
+def run(args: argparse.Namespace) -> int:
+    from vitfly.eval.evaluation import merge_into, run_evaluation, write_outputs
+    from vitfly.eval.report import print_table
+
+    overrides = {k: getattr(args, k) for k in ("policy", "arch", "name", "env", "preset", "speeds", "trials", "seed",
+                                              "out", "num_envs", "workers", "shard", "device", "threads",
+                                              "backend", "timeout_s", "wandb_project")}
+    overrides["gif"] = False if args.no_gif else None
+    overrides["plots"] = False if args.no_plots else None
+    cfg = load_sweep_config(args.config, overrides)
+    if args.merge or args.report_only:
+        if args.merge:
+            print(f"{cfg.out}: merged {merge_into(cfg.out, args.merge)} new trials")
+        rows, files = write_outputs(cfg.out, cfg.plots)
+    else:
+        result = run_evaluation(cfg, progress=not args.no_progress)
+        rows, files = result.rows, result.files
+        o = result.outcome
+        print(f"{cfg.label}: {o.flown} trials flown, {o.skipped} already done, {o.wall_s:.1f} s")
+    print_table(rows, title=f"closed-loop evaluation ({cfg.out})")
+    print("wrote " + ", ".join(str(p) for p in files.values()))
+    return 0

@@ -1,0 +1,102 @@
+"""``vitfly evaluate`` as a library call: sweep, then reports, plots, a depth GIF and (optionally) wandb.
+
+Reports always cover every record in the output directory, so several policies evaluated into one
+directory (or shards that share it, or merged directories) give one comparison.
+"""
+
+from __future__ import annotations
+
+import re
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from vitfly.errors import VitflyError
+from vitfly.eval import plots, records
+from vitfly.eval.aggregate import summarize
+from vitfly.eval.config import SweepConfig
+from vitfly.eval.policy_source import PolicySource
+from vitfly.eval.report import write_reports
+from vitfly.eval.sweep import SweepOutcome, plan_trials, rollout_config, run_sweep
+
+
+@dataclass
+class EvaluationResult:
+    rows: list[dict]
+    outcome: SweepOutcome | None
+    files: dict[str, Path] = field(default_factory=dict)
+
+
+def scene_of(records_: Sequence[records.TrialRecord], env: str, preset: str, seed: int):
+    """The obstacle layout stored with the trials, else regenerated from (env, preset, seed)."""
+    from vitfly.sim.scenes import Scene, make_scene
+
+    for rec in records_:
+        if rec.env == env and rec.scene_seed == seed and "scene" in rec.extra:
+            return Scene.from_dict(rec.extra["scene"], source=f"trial record {rec.key}")
+    return make_scene(env, preset, seed)
+
+
+def write_outputs(out_dir: str | Path, with_plots: bool = True, title: str | None = None) -> tuple[list, dict]:
+    """summary.csv, summary.md and the plots from every record in ``out_dir``."""
+    recs = records.read_sweep(out_dir)
+    if not recs:
+        raise VitflyError(f"{out_dir}: no finished trials (trials*.jsonl) to report on")
+    rows = summarize(recs)
+    files = dict(write_reports(out_dir, rows, title))
+    if with_plots:
+        files.update(plots.write_standard_plots(
+            out_dir, rows, recs, scene_loader=lambda env, preset, seed: scene_of(recs, env, preset, seed)))
+    return rows, files
+
+
+def _safe(name: str) -> str:
+    return re.sub(r"[^A-Za-z0-9_.-]+", "_", name)
+
+
+def depth_gif(cfg: SweepConfig, source: PolicySource | None = None) -> Path:
+    """Fly the first trial of the first env at the middle speed with depth frames recorded; write the GIF."""
+    from vitfly.eval.depth_gif import write_depth_gif
+    from vitfly.sim.rollout import run_episodes
+    from vitfly.sim.scenes import make_scene
+
+    spec = next(s for s in plan_trials(cfg) if s.speed == sorted(cfg.speeds)[len(cfg.speeds) // 2])
+    path = Path(cfg.out) / f"depth_{_safe(cfg.label)}_{spec.env}.gif"
+    if path.exists():
+        return path
+    source = source or PolicySource(cfg.policy, cfg.arch, cfg.backend, cfg.device)
+    result = run_episodes([make_scene(spec.env, spec.preset, spec.scene_seed)], [spec.speed], source.build(),
+                          rollout_config(cfg, record_depth=True))[0]
+    log = result.log
+    return write_depth_gif(path, log.depth, log.command, log.quat, spec.speed, log.time, log.contact,
+                           title=f"{cfg.label} {spec.env} {spec.speed:g} m/s")
+
+
+def merge_into(out_dir: str | Path, sources: Sequence[str | Path]) -> int:
+    """Copy the records of other sweep directories (e.g. shards run elsewhere) into ``out_dir``; returns
+    how many were new."""
+    have = {r.key for r in records.read_sweep(out_dir)}
+    added = 0
+    for src in sources:
+        if not Path(src).is_dir():
+            raise VitflyError(f"--merge {src}: not a directory of trials*.jsonl")
+        for rec in records.read_sweep(src):
+            if rec.key not in have:
+                records.append_record(Path(out_dir) / records.TRIALS_FILE, rec)
+                have.add(rec.key)
+                added += 1
+    return added
+
+
+def run_evaluation(cfg: SweepConfig, progress: bool = True) -> EvaluationResult:
+    """Fly the sweep (resuming), then write every report of ``cfg.out``."""
+    outcome = run_sweep(cfg, progress=progress)
+    rows, files = write_outputs(cfg.out, cfg.plots)
+    if cfg.gif:
+        files[f"depth_{cfg.label}"] = depth_gif(cfg)
+    if cfg.wandb_project:
+        from vitfly.eval.wandb_log import log_evaluation
+
+        images = {k: v for k, v in files.items() if Path(v).suffix in (".png", ".gif")}
+        log_evaluation(cfg.wandb_project, rows, images, cfg.out, run_name=cfg.label, config=vars(cfg))
+    return EvaluationResult(rows, outcome, files)

@@ -1,0 +1,56 @@
+"""What ``--policy`` names, as a picklable recipe that each worker process builds once.
+
+``expert`` and ``straight`` are the simulator's built-in policies; anything else is a checkpoint
+path: a vitfly/Lightning checkpoint, or an original-project state dict with ``arch``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+from vitfly.errors import VitflyError
+
+BUILTIN = ("expert", "straight")
+
+
+@dataclass(frozen=True)
+class PolicySource:
+    spec: str  # "expert", "straight" or a checkpoint path
+    arch: str | None = None  # architecture of an original-project checkpoint
+    backend: str = "eager"  # "eager" or "onnxruntime" (learned policies)
+    device: str = "cpu"
+
+    @property
+    def is_builtin(self) -> bool:
+        return self.spec in BUILTIN
+
+    def check(self) -> None:
+        """Fail early, in the parent process, with one line naming the bad input."""
+        if self.is_builtin:
+            if self.arch is not None:
+                raise VitflyError(f"--arch {self.arch} only applies to checkpoints, not to policy {self.spec!r}")
+            return
+        if not Path(self.spec).is_file():
+            raise VitflyError(f"--policy {self.spec}: no such checkpoint file (or use 'expert' / 'straight')")
+
+    def load_network(self):
+        from vitfly.zoo import load_network
+
+        return load_network(self.spec, arch=self.arch)
+
+    def build(self):
+        """The policy object for the rollout engine."""
+        if self.is_builtin:
+            from vitfly.sim.policies import make_builtin_policy
+
+            return make_builtin_policy(self.spec)
+        from vitfly.eval.learned_policy import LearnedPolicy
+
+        net = self.load_network()
+        step_fn = None
+        if self.backend == "onnxruntime":
+            from vitfly.eval.onnx_step import onnx_step_fn
+
+            step_fn = onnx_step_fn(net)
+        return LearnedPolicy(net, device=self.device, step_fn=step_fn)

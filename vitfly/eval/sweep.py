@@ -1,0 +1,242 @@
+"""An evaluation sweep: one policy over envs x speeds x trials, resumable, sharded, in lockstep batches.
+
+Trial ``k`` of an env flies the scene with seed ``derive_scene_seed(seed, env, k)`` at every speed,
+so every policy sees the same scenes. The full trial list is fixed by the config; ``--shard i/n``
+takes every n-th trial of it; trials already in ``DIR/trials*.jsonl`` are skipped; the rest are
+grouped by speed into lockstep batches of ``num_envs`` scenes (one batched policy call per
+control tick) and the batches are spread over ``workers`` processes. Each finished trial is
+appended to ``DIR/trials.jsonl`` at once (``vitfly.eval.records``), from whichever process flew it.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import time
+import zlib
+from collections.abc import Callable, Sequence
+from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
+from dataclasses import dataclass, field
+from multiprocessing import get_context
+from pathlib import Path
+
+import numpy as np
+
+from vitfly.eval import records
+from vitfly.eval.config import SweepConfig, parse_shard
+from vitfly.eval.metrics import trial_metrics
+from vitfly.eval.policy_source import PolicySource
+
+
+@dataclass(frozen=True)
+class TrialSpec:
+    env: str
+    preset: str
+    speed: float  # desired forward speed, m/s
+    trial: int
+    scene_seed: int
+
+
+def derive_scene_seed(seed: int, env: str, trial: int) -> int:
+    """Scene seed of trial ``trial`` in ``env`` for sweep seed ``seed`` (independent of speed and policy)."""
+    state = np.random.SeedSequence([int(seed), zlib.crc32(env.encode()), int(trial)]).generate_state(1)
+    return int(state[0] & 0x7FFFFFFF)
+
+
+def plan_trials(cfg: SweepConfig) -> list[TrialSpec]:
+    """Every trial of the sweep, ordered by (env, trial, speed) so shards get all speeds alike."""
+    return [
+        TrialSpec(env, cfg.preset, float(speed), k, derive_scene_seed(cfg.seed, env, k))
+        for env in cfg.env
+        for k in range(cfg.trials)
+        for speed in cfg.speeds
+    ]
+
+
+def select_shard(specs: Sequence[TrialSpec], index: int, count: int) -> list[TrialSpec]:
+    return list(specs[index::count])
+
+
+def make_batches(specs: Sequence[TrialSpec], num_envs: int) -> list[list[TrialSpec]]:
+    """Lockstep batches of up to ``num_envs`` trials; equal speeds together, so a batch ends together."""
+    ordered = sorted(specs, key=lambda s: (s.speed, s.env, s.trial))
+    return [ordered[i : i + num_envs] for i in range(0, len(ordered), num_envs)]
+
+
+class TimedPolicy:
+    """Wraps a policy and books each call's wall time to the envs active in it (ms per env per tick)."""
+
+    def __init__(self, policy):
+        self.policy = policy
+        self.needs_depth = bool(getattr(policy, "needs_depth", True))
+
+    def reset(self, num_envs: int) -> None:
+        self.policy.reset(num_envs)
+        self.env_ms = np.zeros(num_envs)
+        self.call_ms = np.zeros(num_envs)
+        self.calls = np.zeros(num_envs, dtype=np.int64)
+
+    def __call__(self, obs):
+        t0 = time.perf_counter()
+        out = self.policy(obs)
+        ms = 1e3 * (time.perf_counter() - t0)
+        active = np.flatnonzero(obs.active)
+        if len(active):
+            self.env_ms[active] += ms / len(active)
+            self.call_ms[active] += ms
+            self.calls[active] += 1
+        return out
+
+
+def rollout_config(cfg: SweepConfig, record_depth: bool = False):
+    from vitfly.sim.rollout import RolloutConfig, TaskConfig
+
+    task = TaskConfig() if cfg.timeout_s is None else TaskConfig(timeout_s=cfg.timeout_s, timeout_speed_factor=0.0)
+    return RolloutConfig(task=task, record_depth=record_depth)
+
+
+def record_from_result(spec: TrialSpec, label: str, result, cfg: SweepConfig, processing_ms: float,
+                       call_ms: float, batch_size: int) -> records.TrialRecord:
+    """One trial record; metrics are computed from the rounded path as stored."""
+    log, summary = result.log, result.summary
+    path = records.round_path(log.time, log.position, log.velocity, log.command, log.contact)
+    arr = {k: np.asarray(v) for k, v in path.items()}
+    goal_x = rollout_config(cfg).task.goal_x_m
+    m = trial_metrics(arr["time"], arr["position"].reshape(-1, 3), arr["velocity"].reshape(-1, 3),
+                      arr["command"].reshape(-1, 3), arr["contact"], desired_speed_mps=spec.speed, goal_x_m=goal_x,
+                      reached_goal=summary.reached_goal, processing_ms=processing_ms)
+    extra = {
+        "sweep_seed": cfg.seed,
+        "policy_source": cfg.policy,
+        "arch": cfg.arch,
+        "backend": cfg.backend if cfg.policy not in ("expert", "straight") else None,
+        "batch_size": batch_size,
+        "batch_call_ms": call_ms,
+        # the simulator's own counts at the physics rate (metrics use the per-tick path, recomputable)
+        "physics_collisions": summary.n_collisions,
+        "physics_contact_time_s": summary.time_in_contact_s,
+        "duration_s": summary.duration_s,
+        "scene": result.scene.to_dict(),
+    }
+    return records.TrialRecord(
+        policy=label, env=spec.env, preset=spec.preset, speed=spec.speed, trial=spec.trial,
+        scene_seed=spec.scene_seed, success=m.success, reached_goal=m.reached_goal, end_reason=summary.end_reason,
+        metrics=m.to_dict(), path=path, extra=extra,
+    )
+
+
+def fly_batch(batch: Sequence[TrialSpec], policy, cfg: SweepConfig, out_file: Path,
+              on_trial: Callable[[records.TrialRecord], None] | None = None) -> int:
+    """Fly one lockstep batch; each trial is appended to ``out_file`` the moment it ends."""
+    from vitfly.sim.rollout import run_episodes
+    from vitfly.sim.scenes import make_scene
+
+    scenes = [make_scene(s.env, s.preset, s.scene_seed) for s in batch]
+    timed = TimedPolicy(policy)
+
+    def finished(i: int, result) -> None:
+        calls = max(int(timed.calls[i]), 1)
+        rec = record_from_result(batch[i], cfg.label, result, cfg, float(timed.env_ms[i] / calls),
+                                 float(timed.call_ms[i] / calls), len(batch))
+        records.append_record(out_file, rec)
+        if on_trial is not None:
+            on_trial(rec)
+
+    run_episodes(scenes, [s.speed for s in batch], timed, rollout_config(cfg), on_episode_end=finished)
+    return len(batch)
+
+
+# worker processes build the policy once and keep it here (one per process)
+_WORKER: dict = {}
+
+
+def _worker_init(source: PolicySource, threads: int) -> None:
+    import torch
+
+    torch.set_num_threads(threads)
+    _WORKER["policy"] = source.build()
+
+
+def _worker_fly(batch: list[TrialSpec], cfg: SweepConfig, out_file: str) -> int:
+    return fly_batch(batch, _WORKER["policy"], cfg, Path(out_file))
+
+
+@dataclass
+class SweepOutcome:
+    out_dir: Path
+    planned: int  # trials of this shard
+    skipped: int  # already finished before this run
+    flown: int
+    wall_s: float
+    records: list = field(default_factory=list)  # every record in out_dir after the run
+
+
+def pending_trials(cfg: SweepConfig) -> tuple[list[TrialSpec], int]:
+    """(trials of this shard still to fly, trials of this shard already finished)."""
+    index, count = parse_shard(cfg.shard)
+    mine = select_shard(plan_trials(cfg), index, count)
+    done = {r.key for r in records.read_sweep(cfg.out)}
+    todo = [s for s in mine if records.trial_key(cfg.label, s.env, s.speed, s.trial) not in done]
+    return todo, len(mine) - len(todo)
+
+
+def run_sweep(cfg: SweepConfig, progress: bool = True) -> SweepOutcome:
+    """Fly every pending trial of ``cfg``; return counts and all records now in ``cfg.out``."""
+    source = PolicySource(cfg.policy, cfg.arch, cfg.backend, cfg.device)
+    source.check()
+    out_dir = Path(cfg.out)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    out_file = out_dir / records.TRIALS_FILE
+    todo, skipped = pending_trials(cfg)
+    batches = make_batches(todo, cfg.num_envs)
+    t0 = time.perf_counter()
+    with _progress(progress, len(todo), f"{cfg.label}: {len(todo)} trials ({skipped} done before)") as advance:
+        if batches and cfg.workers <= 1:
+            import torch
+
+            torch.set_num_threads(cfg.threads)
+            policy = source.build()
+            for batch in batches:
+                fly_batch(batch, policy, cfg, out_file, on_trial=lambda _rec: advance(1))
+        elif batches:
+            workers = min(cfg.workers, len(batches))
+            # spawn: no forked copies of torch / pybullet state
+            with ProcessPoolExecutor(workers, mp_context=get_context("spawn"), initializer=_worker_init,
+                                     initargs=(source, cfg.threads)) as pool:
+                futures = {pool.submit(_worker_fly, b, cfg, str(out_file)) for b in batches}
+                while futures:
+                    finished, futures = wait(futures, return_when=FIRST_COMPLETED)
+                    for fut in finished:
+                        advance(fut.result())
+    return SweepOutcome(out_dir, len(todo) + skipped, skipped, len(todo), time.perf_counter() - t0,
+                        records.read_sweep(out_dir))
+
+
+class _progress:
+    """A rich progress bar (or nothing) exposing ``advance(n)``."""
+
+    def __init__(self, enabled: bool, total: int, description: str):
+        self.enabled, self.total, self.description = enabled and total > 0, total, description
+
+    def __enter__(self):
+        if not self.enabled:
+            return lambda n: None
+        from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+
+        self.bar = Progress(TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn())
+        self.bar.start()
+        task = self.bar.add_task(self.description, total=self.total)
+        return lambda n: self.bar.advance(task, n)
+
+    def __exit__(self, *exc):
+        if self.enabled:
+            self.bar.stop()
+        return False
+
+
+def trials_per_minute(flown: int, wall_s: float) -> float:
+    return 60.0 * flown / wall_s if wall_s > 0 else math.nan
+
+
+def default_workers() -> int:
+    return max(1, (os.cpu_count() or 1) // 2)
