@@ -77,3 +77,19 @@ def test_lstm_state_is_per_env_carried_and_reset():
     again = policy.raw_output(ticks[0])
     assert again[1] == pytest.approx(outs[0][1], abs=1e-6)  # env 1 restarted
     assert not np.allclose(again[0], outs[0][0], atol=1e-6)  # env 0 carried on
+
+
+def test_onnxruntime_step_gives_the_eager_commands():
+    from vitfly.deploy.onnx import OnnxPolicyRunner
+
+    torch.manual_seed(0)
+    net = create_model("lstmnet").eval()
+    eager, onnx = LearnedPolicy(net), LearnedPolicy(net, step_fn=OnnxPolicyRunner(net))
+    rng = np.random.default_rng(2)
+    ticks = [_obs(rng, 3) for _ in range(3)]
+    ticks[2]["active"] = np.array([True, False, True])
+    eager.reset(3)
+    onnx.reset(3)
+    for obs in ticks:
+        a, b = eager.raw_output(obs), onnx.raw_output(obs)
+        assert b == pytest.approx(a, rel=1e-3, abs=1e-3)

@@ -19,6 +19,8 @@ from vitfly.eval.policy_source import PolicySource
 from vitfly.eval.report import write_reports
 from vitfly.eval.sweep import SweepOutcome, plan_trials, rollout_config, run_sweep
 
+MAX_GIF_FRAMES = 300  # longer trials are subsampled (GIF size)
+
 
 @dataclass
 class EvaluationResult:
@@ -56,20 +58,19 @@ def _safe(name: str) -> str:
 
 def depth_gif(cfg: SweepConfig, source: PolicySource | None = None) -> Path:
     """Fly the first trial of the first env at the middle speed with depth frames recorded; write the GIF."""
-    from vitfly.eval.depth_gif import write_depth_gif
     from vitfly.sim.rollout import run_episodes
     from vitfly.sim.scenes import make_scene
+    from vitfly.sim.visualize import write_gif
 
     spec = next(s for s in plan_trials(cfg) if s.speed == sorted(cfg.speeds)[len(cfg.speeds) // 2])
     path = Path(cfg.out) / f"depth_{_safe(cfg.label)}_{spec.env}.gif"
     if path.exists():
         return path
-    source = source or PolicySource(cfg.policy, cfg.arch, cfg.backend, cfg.device)
+    source = source or PolicySource(cfg.policy, cfg.arch, cfg.backend, cfg.device, cfg.threads)
     result = run_episodes([make_scene(spec.env, spec.preset, spec.scene_seed)], [spec.speed], source.build(),
                           rollout_config(cfg, record_depth=True))[0]
-    log = result.log
-    return write_depth_gif(path, log.depth, log.command, log.quat, spec.speed, log.time, log.contact,
-                           title=f"{cfg.label} {spec.env} {spec.speed:g} m/s")
+    stride = max(1, -(-len(result.log) // MAX_GIF_FRAMES))
+    return write_gif(result, path, stride=stride)
 
 
 def merge_into(out_dir: str | Path, sources: Sequence[str | Path]) -> int:

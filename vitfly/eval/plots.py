@@ -17,10 +17,10 @@ from pathlib import Path
 
 import numpy as np
 from matplotlib.figure import Figure
-from matplotlib.patches import Circle, Rectangle
 
 from vitfly.eval.atomic import atomic_path
 from vitfly.eval.records import TrialRecord
+from vitfly.sim.visualize import draw_path, draw_scene, format_views
 
 FIXED_COLOURS = {"expert": "black", "straight": "0.55"}
 PALETTE = ("tab:green", "tab:blue", "tab:red", "tab:orange", "tab:purple", "tab:brown", "tab:pink", "tab:olive",
@@ -88,19 +88,6 @@ def plot_vs_speed(rows: Sequence[dict], panels: Sequence[tuple[str, str, bool]],
     return _save(fig, Path(path))
 
 
-def _draw_obstacles(ax_top, ax_side, scene) -> None:
-    style = {"facecolor": "0.8", "edgecolor": "0.6", "alpha": 0.6, "lw": 0.5}
-    for x, y, z, r in np.asarray(getattr(scene, "spheres", np.zeros((0, 4)))):
-        ax_top.add_patch(Circle((x, y), r, **style))
-        ax_side.add_patch(Circle((x, z), r, **style))
-    for x, y, z0, z1, r in np.asarray(getattr(scene, "cylinders", np.zeros((0, 5)))):
-        ax_top.add_patch(Circle((x, y), r, **style))
-        ax_side.add_patch(Rectangle((x - r, z0), 2 * r, z1 - z0, **style))
-    for x0, y0, z0, x1, y1, z1 in np.asarray(getattr(scene, "boxes", np.zeros((0, 6)))):
-        ax_top.add_patch(Rectangle((x0, y0), x1 - x0, y1 - y0, **style))
-        ax_side.add_patch(Rectangle((x0, z0), x1 - x0, z1 - z0, **style))
-
-
 def plot_paths(records: Sequence[TrialRecord], path: str | Path, scene=None, title: str = "") -> Path:
     """Top-down and side views of every given record's path (meant: repeats of one scene), by policy.
 
@@ -112,26 +99,15 @@ def plot_paths(records: Sequence[TrialRecord], path: str | Path, scene=None, tit
     fig = Figure(figsize=(11, 5.8), layout="constrained")
     ax_top, ax_side = fig.subplots(2, 1, height_ratios=(2, 1))
     if scene is not None:
-        _draw_obstacles(ax_top, ax_side, scene)
+        draw_scene(ax_top, ax_side, scene)
     seen: set[str] = set()
     for rec in records:
         arr = rec.path_arrays()
-        pos, hit = arr["position"], arr["contact"]
         label = rec.policy if rec.policy not in seen else None
         seen.add(rec.policy)
-        for ax, k in ((ax_top, 1), (ax_side, 2)):
-            ax.plot(pos[:, 0], pos[:, k], color=colours[rec.policy], lw=1.0, alpha=0.75, label=label)
-            if hit.any():
-                ax.plot(pos[hit, 0], pos[hit, k], "x", color="red", ms=3, alpha=0.8)
-    ax_top.set_ylabel("y (m), left +")
-    ax_side.set_ylabel("z (m), up +")
-    ax_side.set_xlabel("x (m), forward")
-    ax_top.set_ylim(-10, 10)
-    ax_side.set_ylim(0, 10)
-    for ax in (ax_top, ax_side):
-        ax.set_xlim(-2, 65)
-        ax.set_aspect("equal")
-        ax.grid(alpha=0.3)
+        draw_path(ax_top, ax_side, arr["position"], arr["contact"], color=colours[rec.policy], lw=1.3,
+                  alpha=0.85, zorder=3, label=label)  # above the opaque obstacles
+    format_views(ax_top, ax_side)
     ax_top.set_title(title or "paths over repeated trials of one scene (top-down, then side)")
     ax_top.legend(loc="upper left", fontsize=8)
     return _save(fig, Path(path))

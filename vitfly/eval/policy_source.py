@@ -20,6 +20,7 @@ class PolicySource:
     arch: str | None = None  # architecture of an original-project checkpoint
     backend: str = "eager"  # "eager" or "onnxruntime" (learned policies)
     device: str = "cpu"
+    threads: int = 1  # ONNX Runtime intra-op threads
 
     @property
     def is_builtin(self) -> bool:
@@ -50,7 +51,7 @@ class PolicySource:
         net = self.load_network()
         step_fn = None
         if self.backend == "onnxruntime":
-            from vitfly.eval.onnx_step import onnx_step_fn
+            from vitfly.deploy.onnx import OnnxPolicyRunner
 
-            step_fn = onnx_step_fn(net)
+            step_fn = OnnxPolicyRunner(net, threads=self.threads)  # exported on the fly, checked against eager
         return LearnedPolicy(net, device=self.device, step_fn=step_fn)

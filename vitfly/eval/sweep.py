@@ -182,7 +182,7 @@ def pending_trials(cfg: SweepConfig) -> tuple[list[TrialSpec], int]:
 
 def run_sweep(cfg: SweepConfig, progress: bool = True) -> SweepOutcome:
     """Fly every pending trial of ``cfg``; return counts and all records now in ``cfg.out``."""
-    source = PolicySource(cfg.policy, cfg.arch, cfg.backend, cfg.device)
+    source = PolicySource(cfg.policy, cfg.arch, cfg.backend, cfg.device, cfg.threads)
     source.check()
     out_dir = Path(cfg.out)
     out_dir.mkdir(parents=True, exist_ok=True)
