@@ -17,6 +17,7 @@ from torch import nn
 # the networks scale the desired speed before concatenating it (paper code)
 SPEED_SCALE = 0.1
 STATE_DIM = 5
+INIT_POWER_ITERATIONS = 15
 
 
 def min_pool2d(x: torch.Tensor, kernel_size: int, stride: int = 1) -> torch.Tensor:
@@ -55,6 +56,12 @@ class SNLinear(nn.Module):
         self.bias = nn.Parameter(linear.bias.detach().clone()) if bias else None
         self.register_buffer("weight_u", F.normalize(torch.randn(out_features), dim=0, eps=eps))
         self.register_buffer("weight_v", F.normalize(torch.randn(in_features), dim=0, eps=eps))
+        # start from a converged estimate (as torch.nn.utils.parametrizations.spectral_norm does) so an
+        # untrained network already has sensible output scales; loading a state dict replaces u and v
+        with torch.no_grad():
+            for _ in range(INIT_POWER_ITERATIONS):
+                self.weight_v.copy_(F.normalize(torch.mv(self.weight_orig.t(), self.weight_u), dim=0, eps=eps))
+                self.weight_u.copy_(F.normalize(torch.mv(self.weight_orig, self.weight_v), dim=0, eps=eps))
         self._cache_key: tuple | None = None
         self._cached_weight: torch.Tensor | None = None
 
@@ -76,6 +83,8 @@ class SNLinear(nn.Module):
         if self.training or torch.is_grad_enabled():
             return self._normalised_weight()
         w, u, v = self.weight_orig, self.weight_u, self.weight_v
+        if w.is_inference() or u.is_inference() or v.is_inference():
+            return self._normalised_weight()  # inference tensors keep no version counter to key a cache on
         key = (w._version, u._version, v._version, w.data_ptr(), u.data_ptr(), v.data_ptr(), w.dtype, w.device)
         if key != self._cache_key or self._cached_weight is None:
             self._cached_weight = self._normalised_weight()

@@ -16,7 +16,12 @@ Hidden = tuple[torch.Tensor, torch.Tensor]
 
 
 def _tracing() -> bool:
-    return torch.jit.is_tracing() or torch.onnx.is_in_onnx_export() or torch.compiler.is_compiling()
+    return (
+        torch.jit.is_tracing()
+        or torch.onnx.is_in_onnx_export()
+        or torch.compiler.is_compiling()
+        or torch.compiler.is_exporting()
+    )
 
 
 def zero_hidden(lstm: nn.LSTM, batch_size: int, device=None, dtype=None) -> Hidden:

@@ -1,0 +1,1 @@
+"""Deployment: inference-only network rewrites, ONNX export and the ONNX Runtime policy runner."""

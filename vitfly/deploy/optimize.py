@@ -1,0 +1,231 @@
+"""Inference-only rewrites of zoo networks for export (same function, cheaper graph).
+
+``inference_copy(net)`` returns an eval-mode deep copy in which
+
+- spectrally normalised linears become plain ``nn.Linear`` with the normalised weight (eval-mode
+  arithmetic: the stored ``u``/``v``, no power iteration);
+- grouped convolutions with few channels per group (the mix-FFN's 8) are embedded in convolutions with
+  16 channels per group (block-diagonal weights, zeros off the blocks), which ONNX Runtime runs in its
+  blocked-channel (NCHWc) kernels, faster than the exact grouping despite the zero products;
+- the mix-FFN runs as 1x1 convolution -> grouped convolution -> GELU -> 1x1 convolution on a
+  channels-last view of the tokens, which ONNX Runtime keeps in its blocked layout from end to end
+  instead of reordering the widest tensor twice;
+- the efficient self-attention has the 1/sqrt(d) scale folded into the query weights and the output
+  projection folded into the value projection (attention rows sum to one), one product less per layer;
+- LSTMs run as their cell equations written out (``lstm_inference``): at batch 1 a handful of small
+  products beat ONNX Runtime's LSTM kernel several times over;
+- in the ViT, the decoder Linear and the first head Linear (nothing non-linear between them) are folded
+  into one smaller product.
+
+The original network is left untouched; the export checks the copy against it.
+"""
+
+from __future__ import annotations
+
+import copy
+
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+from vitfly.zoo.layers import STATE_DIM, SNLinear
+from vitfly.zoo.mix_transformer import EfficientSelfAttention, MixFFN
+from vitfly.zoo.recurrent import lstm_inference
+from vitfly.zoo.vit import ViT
+
+# ONNX Runtime's blocked convolution kernels need channel counts per group in multiples of this
+CHANNEL_BLOCK = 16
+
+
+def plain_linear(layer: SNLinear) -> nn.Linear:
+    """An ``nn.Linear`` holding the eval-mode normalised weight of ``layer``."""
+    with torch.no_grad():
+        training = layer.training
+        layer.eval()  # eval-mode arithmetic: stored u and v, no power-iteration update
+        weight = layer._normalised_weight()
+        layer.train(training)
+        out = nn.Linear(layer.in_features, layer.out_features, bias=layer.bias is not None)
+        out.weight.copy_(weight)
+        if layer.bias is not None:
+            out.bias.copy_(layer.bias)
+    return out
+
+
+def merge_conv_groups(conv: nn.Conv2d, block: int = CHANNEL_BLOCK) -> nn.Conv2d:
+    """Same convolution with groups merged so each group has a multiple of ``block`` channels.
+
+    Returns ``conv`` itself when it is dense, depthwise, or cannot be merged evenly.
+    """
+    groups = conv.groups
+    in_per, out_per = conv.in_channels // groups, conv.out_channels // groups
+    if groups == 1 or in_per == 1 or in_per % block == 0 or in_per != out_per:
+        return conv
+    merge = block // in_per if block % in_per == 0 else 0
+    if merge < 2 or groups % merge:
+        return conv
+    new_groups = groups // merge
+    merged = nn.Conv2d(
+        conv.in_channels, conv.out_channels, conv.kernel_size, conv.stride, conv.padding, conv.dilation,
+        groups=new_groups, bias=conv.bias is not None, padding_mode=conv.padding_mode,
+    )  # fmt: skip
+    with torch.no_grad():
+        weight = torch.zeros_like(merged.weight)  # (out, in_per * merge, kh, kw)
+        for out_channel in range(conv.out_channels):
+            slot = (out_channel // out_per) % merge  # position of the original group inside the merged one
+            weight[out_channel, slot * in_per : (slot + 1) * in_per] = conv.weight[out_channel]
+        merged.weight.copy_(weight)
+        if conv.bias is not None:
+            merged.bias.copy_(conv.bias)
+    return merged
+
+
+def _pointwise_conv(linear: nn.Linear) -> nn.Conv2d:
+    conv = nn.Conv2d(linear.in_features, linear.out_features, kernel_size=1)
+    with torch.no_grad():
+        conv.weight.copy_(linear.weight[:, :, None, None])
+        conv.bias.copy_(linear.bias)
+    return conv
+
+
+class ConvMixFFN(nn.Module):
+    """``MixFFN`` as convolutions on the channels-last token grid (same call: tokens (N, H*W, C), h, w)."""
+
+    def __init__(self, ffn: MixFFN) -> None:
+        super().__init__()
+        self.mlp1 = _pointwise_conv(ffn.mlp1)
+        self.depthwise = merge_conv_groups(ffn.depthwise)
+        self.mlp2 = _pointwise_conv(ffn.mlp2)
+
+    def forward(self, x: torch.Tensor, h: int, w: int) -> torch.Tensor:
+        c = x.shape[-1]
+        grid = x.reshape(-1, h, w, c).permute(0, 3, 1, 2)  # a view: ORT reads it straight into its blocked layout
+        y = self.mlp2(F.gelu(self.depthwise(self.mlp1(grid))))
+        return y.permute(0, 2, 3, 1).reshape(-1, h * w, c)
+
+
+class FoldedAttention(nn.Module):
+    """``EfficientSelfAttention`` with the query scale and the output projection folded in.
+
+    out = sum_h softmax(q_h k_h^T / sqrt(d)) (v_h Wf_h^T) + bf, where Wf_h are the output projection's
+    columns for head h; the per-head value projections are stacked so one product serves all heads.
+    """
+
+    def __init__(self, attn: EfficientSelfAttention) -> None:
+        super().__init__()
+        c = attn.query.in_features
+        heads = attn.num_heads
+        d = c // heads
+        self.num_heads, self.head_dim, self.channels = heads, d, c
+        self.cn1, self.ln1 = attn.cn1, attn.ln1
+        with torch.no_grad():
+            self.query = nn.Linear(c, c)
+            self.query.weight.copy_(attn.query.weight / d**0.5)
+            self.query.bias.copy_(attn.query.bias / d**0.5)
+            self.key = nn.Linear(c, c)
+            self.key.weight.copy_(attn.keyValueExtractor.weight[:c])
+            self.key.bias.copy_(attn.keyValueExtractor.bias[:c])
+            w_v, b_v = attn.keyValueExtractor.weight[c:], attn.keyValueExtractor.bias[c:]
+            w_f = attn.finalLayer.weight
+            self.value = nn.Linear(c, heads * c)  # head-major blocks of (C) outputs
+            for head in range(heads):
+                rows = slice(head * d, (head + 1) * d)
+                self.value.weight[head * c : (head + 1) * c].copy_(w_f[:, rows] @ w_v[rows])
+                self.value.bias[head * c : (head + 1) * c].copy_(w_f[:, rows] @ b_v[rows])
+            self.out_bias = nn.Parameter(attn.finalLayer.bias.detach().clone())
+
+    def forward(self, x: torch.Tensor, h: int, w: int) -> torch.Tensor:
+        c, heads, d = self.channels, self.num_heads, self.head_dim
+        length = h * w
+        reduced = self.cn1(x.reshape(-1, h, w, c).permute(0, 3, 1, 2))
+        reduced = self.ln1(reduced.flatten(2).transpose(1, 2))  # (N, L', C)
+        r = reduced.shape[1]
+        q = self.query(x).reshape(-1, length, heads, d).transpose(1, 2)  # (N, heads, L, d)
+        k = self.key(reduced).reshape(-1, r, heads, d).permute(0, 2, 3, 1)  # (N, heads, d, L')
+        weights = torch.softmax(q @ k, dim=-1)  # (N, heads, L, L')
+        v = self.value(reduced).reshape(-1, r, heads, c).transpose(1, 2).reshape(-1, heads * r, c)
+        weights = weights.transpose(1, 2).reshape(-1, length, heads * r)  # heads side by side
+        return weights @ v + self.out_bias
+
+
+class UnrolledLSTM(nn.LSTM):
+    """An ``nn.LSTM`` (same parameters) whose forward is the eval-mode cell arithmetic as plain ops."""
+
+    @classmethod
+    def from_lstm(cls, lstm: nn.LSTM) -> UnrolledLSTM:
+        if not lstm.batch_first or lstm.bidirectional or lstm.proj_size:
+            raise ValueError("UnrolledLSTM supports batch-first, unidirectional LSTMs without projections")
+        new = cls(lstm.input_size, lstm.hidden_size, lstm.num_layers, bias=lstm.bias, batch_first=True)
+        new.load_state_dict(lstm.state_dict())
+        return new.eval()
+
+    def forward(self, x, hx=None):
+        if hx is None:
+            zeros = x.new_zeros(self.num_layers, x.shape[0], self.hidden_size)
+            hx = (zeros, zeros)
+        return lstm_inference(self, x, hx)
+
+
+class FoldedViTHead(nn.Module):
+    """``leaky_relu(nn_fc1(cat(decoder(f), state)))`` with decoder and nn_fc1 multiplied out."""
+
+    def __init__(self, decoder: nn.Linear, fc1: nn.Linear) -> None:
+        super().__init__()
+        with torch.no_grad():
+            split = decoder.out_features
+            w_features, w_state = fc1.weight[:, :split], fc1.weight[:, split:]
+            self.features = nn.Linear(decoder.in_features, fc1.out_features)
+            self.features.weight.copy_(w_features @ decoder.weight)
+            self.features.bias.copy_(w_features @ decoder.bias + fc1.bias)
+            self.state = nn.Linear(STATE_DIM, fc1.out_features, bias=False)
+            self.state.weight.copy_(w_state)
+
+    def forward(self, fused: torch.Tensor, state: torch.Tensor) -> torch.Tensor:
+        return F.leaky_relu(self.features(fused) + self.state(state))
+
+
+class _FoldedViT(nn.Module):
+    """A ViT whose encode/head use ``FoldedViTHead`` (shares the encoder modules of ``vit``)."""
+
+    def __init__(self, vit: ViT) -> None:
+        super().__init__()
+        self.vit = vit
+        self.folded = FoldedViTHead(vit.decoder, vit.nn_fc1)
+        self.is_recurrent = False
+        self.use_state = vit.use_state
+
+    def initial_hidden(self, batch_size: int, device=None, dtype=None):
+        return None
+
+    def forward(self, depth, desired_speed, quat, hidden=None):
+        from vitfly.zoo.base import IMAGE_HEIGHT, IMAGE_WIDTH, check_inputs
+        from vitfly.zoo.layers import state_vector
+
+        b, t = check_inputs(depth, desired_speed, quat)
+        fused = self.vit.fused_features(depth.reshape(b * t, 1, IMAGE_HEIGHT, IMAGE_WIDTH)).reshape(b, t, -1)
+        x = self.folded(fused, state_vector(desired_speed, quat, self.use_state))
+        return self.vit.nn_fc2(x), None
+
+
+def _replace_modules(module: nn.Module) -> None:
+    for name, child in module.named_children():
+        if isinstance(child, SNLinear):
+            setattr(module, name, plain_linear(child))
+        elif isinstance(child, nn.LSTM):
+            setattr(module, name, UnrolledLSTM.from_lstm(child))
+        elif isinstance(child, MixFFN):
+            setattr(module, name, ConvMixFFN(child))
+        elif isinstance(child, EfficientSelfAttention):
+            setattr(module, name, FoldedAttention(child))
+        elif isinstance(child, nn.Conv2d) and not isinstance(child, nn.ConvTranspose2d):
+            setattr(module, name, merge_conv_groups(child))
+        else:
+            _replace_modules(child)
+
+
+def inference_copy(net: nn.Module) -> nn.Module:
+    """An eval-mode copy of ``net`` with the rewrites above; same call contract and outputs."""
+    copy_ = copy.deepcopy(net).eval()
+    _replace_modules(copy_)
+    if isinstance(copy_, ViT):
+        copy_ = _FoldedViT(copy_).eval()
+    return copy_
