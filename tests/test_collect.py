@@ -71,7 +71,10 @@ def test_collect_writes_the_schema(reference, capsys):
             assert rec.depth.shape == (t, 60, 90) and rec.depth.dtype == np.uint8
             assert rec.depth.min() < 255  # obstacles or ground in view
             np.testing.assert_allclose(np.diff(rec.time), 1 / 30, atol=1e-9)
-            assert rec.position[-1, 0] > 59.0  # flown to the goal
+            # the per-trajectory flags agree with the rows
+            if meta["success"]:
+                assert rec.position[-1, 0] > 59.0 and not rec.collision.any() and meta["n_collisions"] == 0
+            assert int(meta["n_collisions"]) >= int(np.any(rec.collision))
             # labels are the expert's commands: desired speed in cruise, unless every waypoint was
             # blocked (the drone within an inflated obstacle) and it fell back to (0.5, 0, 0.25)
             cruise = (rec.position[:, 0] >= 2) & (rec.position[:, 2] >= 2)

@@ -133,35 +133,52 @@ class DepthCamera:
     # -- casting: each writes min(depth, hit) into the depth buffer ------------------------------
 
     def _cast_spheres(self, depth, spheres, pos, rot) -> None:
-        rel = spheres[:, :3] - pos
+        cfg = self.config
         radius = spheres[:, 3]
-        dist = np.sqrt(np.sum(rel * rel, axis=1))
-        cam = rel @ rot  # world -> body frame (R^T rel, row-wise)
-        keep = (dist - radius < self._reach) & np.all(cam @ self._frustum.T > -radius[:, None], axis=1)
-        for (cx, cy, cz), r in zip(cam[keep].tolist(), radius[keep].tolist(), strict=True):
-            if cx > r:
-                # tangent planes through the camera: exact bounds of the sphere's image in u and v
-                k = cx * cx - r * r
-                hu = r * math.sqrt(max(cx * cx + cy * cy - r * r, 0.0))
-                hv = r * math.sqrt(max(cx * cx + cz * cz - r * r, 0.0))
-                rows, cols = self._pixel_window(
-                    (cx * cy - hu) / k, (cx * cy + hu) / k, (cx * cz - hv) / k, (cx * cz + hv) / k
-                )
-            else:
-                rows, cols = slice(0, self.config.height), slice(0, self.config.width)
-            u, v, a = self._u[rows, cols], self._v[rows, cols], self._a[rows, cols]
-            if u.size == 0:
-                continue
-            b = cx + cy * u + cz * v  # ray . centre
-            cc = cx * cx + cy * cy + cz * cz - r * r  # > 0 when the camera is outside the sphere
-            disc = b * b - a * cc
-            hit = disc >= 0
-            if not hit.any():
-                continue
-            root = np.sqrt(np.where(hit, disc, 0.0))
-            t = (b - root) / a if cc > 0 else (b + root) / a  # inside: the far side (exit point)
-            t[~hit | (t <= 0)] = np.inf
-            np.minimum(depth[rows, cols], t, out=depth[rows, cols])
+        cam = (spheres[:, :3] - pos) @ rot  # world -> body frame (R^T rel, row-wise)
+        # planar depth on a sphere is at least cx - r: beyond the range it would read 1 anyway
+        keep = (cam[:, 0] - radius < cfg.max_range_m) & np.all(cam @ self._frustum.T > -radius[:, None], axis=1)
+        if not keep.any():
+            return
+        cx, cy, cz = cam[keep].T
+        r = radius[keep]
+        r2 = r * r
+        # exact image bounds from the tangent planes through the camera (spheres wholly in front);
+        # a sphere reaching behind the image plane may cover the whole image
+        front = cx > r
+        k = np.where(front, cx * cx - r2, 1.0)
+        hu = r * np.sqrt(np.maximum(cx * cx + cy * cy - r2, 0.0))
+        hv = r * np.sqrt(np.maximum(cx * cx + cz * cz - r2, 0.0))
+        big = 1e6
+        u_lo = np.where(front, (cx * cy - hu) / k, -big)
+        u_hi = np.where(front, (cx * cy + hu) / k, big)
+        v_lo = np.where(front, (cx * cz - hv) / k, -big)
+        v_hi = np.where(front, (cx * cz + hv) / k, big)
+        # u = tan_h (1 - 2 (col + 0.5) / W)  =>  col = (1 - u / tan_h) W / 2 - 0.5; rows likewise
+        c0 = np.clip(np.floor((1.0 - u_hi / self._tan_h) * cfg.width / 2 - 0.5), 0, cfg.width).astype(np.int64)
+        c1 = np.clip(np.ceil((1.0 - u_lo / self._tan_h) * cfg.width / 2 - 0.5) + 1, 0, cfg.width).astype(np.int64)
+        r0 = np.clip(np.floor((1.0 - v_hi / self._tan_v) * cfg.height / 2 - 0.5), 0, cfg.height).astype(np.int64)
+        r1 = np.clip(np.ceil((1.0 - v_lo / self._tan_v) * cfg.height / 2 - 0.5) + 1, 0, cfg.height).astype(np.int64)
+        n_cols = np.maximum(c1 - c0, 0)
+        counts = np.maximum(r1 - r0, 0) * n_cols
+        total = int(counts.sum())
+        if total == 0:
+            return
+        # every (sphere, pixel-in-its-window) pair, gathered into flat arrays: one vectorised pass
+        sid = np.repeat(np.arange(len(counts)), counts)
+        local = np.arange(total) - np.repeat(np.cumsum(counts) - counts, counts)
+        nc = n_cols[sid]
+        pix = (r0[sid] + local // nc) * cfg.width + c0[sid] + local % nc
+        u, v, a = self._u.ravel()[pix], self._v.ravel()[pix], self._a.ravel()[pix]
+        b = cx[sid] + cy[sid] * u + cz[sid] * v  # ray . centre
+        c = (cx * cx + cy * cy + cz * cz - r2)[sid]  # > 0 when the camera is outside the sphere
+        disc = b * b - a * c
+        with np.errstate(invalid="ignore"):
+            root = np.sqrt(disc)  # NaN where the ray misses
+            # outside: the near intersection; inside: the far side (exit point)
+            t = (b - np.where(c > 0, root, -root)) / a
+            hit = t > 0  # False for NaN
+        np.minimum.at(depth.reshape(-1), pix[hit], t[hit])
 
     def _cast_cylinders(self, depth, cylinders, pos, rot, dirs) -> None:
         # vertical cylinders (side wall + top and bottom caps), solved in the world frame

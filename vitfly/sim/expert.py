@@ -59,6 +59,14 @@ def waypoint_grid(config: ExpertConfig) -> tuple[np.ndarray, np.ndarray]:
     return wpts, manhattan
 
 
+@lru_cache(maxsize=8)
+def _unit_directions(config: ExpertConfig) -> np.ndarray:
+    wpts, _ = waypoint_grid(config)
+    dirs = wpts.reshape(-1, 3) / np.linalg.norm(wpts.reshape(-1, 3), axis=1, keepdims=True)
+    dirs.setflags(write=False)
+    return dirs
+
+
 def blocked_waypoints(rel_obstacles: np.ndarray, config: ExpertConfig) -> np.ndarray:
     """(G, G) bool: waypoint blocked by any of ``rel_obstacles`` (K, 4) given relative to the drone.
 
@@ -67,13 +75,18 @@ def blocked_waypoints(rel_obstacles: np.ndarray, config: ExpertConfig) -> np.nda
     """
     wpts, _ = waypoint_grid(config)
     rel = np.asarray(rel_obstacles, dtype=np.float64).reshape(-1, 4)
-    ahead = rel[(rel[:, 0] > 0.0) & (rel[:, 0] < config.lookahead_m)]
-    if len(ahead) == 0:
+    radii = rel[:, 3] + config.inflate_m
+    # all lines lie in the double pyramid |y|, |z| <= slope |x|; an obstacle farther than its inflated
+    # radius from the pyramid's side planes cannot block any of them (a shortcut, same answer)
+    slope = config.grid_half_extent_m / config.lookahead_m
+    margin = radii * np.sqrt(1.0 + slope * slope)
+    dx = rel[:, 0]
+    near_cone = (np.abs(rel[:, 1]) - slope * dx < margin) & (np.abs(rel[:, 2]) - slope * dx < margin)
+    keep = (dx > 0.0) & (dx < config.lookahead_m) & near_cone
+    if not keep.any():
         return np.zeros(wpts.shape[:2], dtype=bool)
-    dirs = wpts.reshape(-1, 3)
-    dirs = dirs / np.linalg.norm(dirs, axis=1, keepdims=True)
-    centres, radii = ahead[:, :3], ahead[:, 3] + config.inflate_m
-    along = dirs @ centres.T  # (G*G, K) projection of each centre on each line
+    centres, radii = rel[keep, :3], radii[keep]
+    along = _unit_directions(config) @ centres.T  # (G*G, K) projection of each centre on each line
     dist2 = np.sum(centres * centres, axis=1)[None, :] - along * along  # squared distance centre-line
     blocked = np.any(dist2 <= (radii * radii)[None, :], axis=1)
     return blocked.reshape(wpts.shape[:2])

@@ -44,7 +44,7 @@ class Region:
 class SpheresConfig:
     """Floating spheres (the training distribution): ``count`` spheres, radii uniform in ``radius``."""
 
-    count: int = 60
+    count: int = 250
     radius: tuple[float, float] = (0.5, 1.5)
     region: Region = field(default_factory=Region)
 
@@ -80,9 +80,9 @@ class WindowConfig:
 # roughly 80-90 % of trials and straight flight in at most ~30 %.
 PRESET_CONFIGS: dict[str, dict[str, SpheresConfig | TreesConfig | WindowConfig]] = {
     "spheres": {
-        "easy": SpheresConfig(count=30),
-        "medium": SpheresConfig(count=60),
-        "hard": SpheresConfig(count=110),
+        "easy": SpheresConfig(count=120),
+        "medium": SpheresConfig(count=250),
+        "hard": SpheresConfig(count=400),
     },
     "trees": {
         "easy": TreesConfig(count=25),
