@@ -104,7 +104,7 @@ def export_onnx_bytes(
         )
     model = program.model_proto
     meta = {
-        "vitfly.model": name or type(net).__name__,
+        "vitfly.model": name or getattr(net, "model_name", "") or type(net).__name__,
         "vitfly.use_state": str(bool(getattr(net, "use_state", True) if use_state is None else use_state)),
         "vitfly.recurrent": str(state_shape is not None),
         "vitfly.state_layers": str(state_shape[0] if state_shape else 0),
@@ -127,6 +127,7 @@ def export_onnx(
     name: str = "",
     optimize: bool = True,
     opset: int | None = None,
+    batch_size: int | None = None,
     check: bool = True,
     atol: float = 1e-4,
 ) -> float | None:
@@ -136,10 +137,10 @@ def export_onnx(
     and writes nothing if ONNX Runtime's outputs differ from eager by more than ``atol`` (relative to the
     output magnitude when it exceeds 1).
     """
-    data = export_onnx_bytes(net, name=name, optimize=optimize, opset=opset)
+    data = export_onnx_bytes(net, name=name, optimize=optimize, opset=opset, batch_size=batch_size)
     diff = None
     if check:
-        diff = OnnxPolicyRunner(data).check_against(net, atol=atol)
+        diff = OnnxPolicyRunner(data).check_against(net, atol=atol, batch_size=batch_size or 2)
     path = os.fspath(path)
     directory = os.path.dirname(os.path.abspath(path))
     if not os.path.isdir(directory):

@@ -192,6 +192,7 @@ class _FoldedViT(nn.Module):
         self.folded = FoldedViTHead(vit.decoder, vit.nn_fc1)
         self.is_recurrent = False
         self.use_state = vit.use_state
+        self.model_name = vit.model_name
 
     def initial_hidden(self, batch_size: int, device=None, dtype=None):
         return None

@@ -40,6 +40,7 @@ class DepthPolicyNet(nn.Module):
     """Base class: input checks, frame flattening and the state vector; subclasses give encode/head."""
 
     is_recurrent: bool = False
+    model_name: str = ""  # the registry name of the architecture
 
     def __init__(self, use_state: bool = True) -> None:
         super().__init__()

@@ -19,6 +19,7 @@ from vitfly.zoo.registry import register_model
 class ConvNet(DepthPolicyNet):
     """Feed-forward CNN; every frame is processed independently (hidden is always None)."""
 
+    model_name = "convnet"
     feature_dim = 10 * 7 * 12
 
     def __init__(self, use_state: bool = True) -> None:

@@ -20,6 +20,7 @@ from vitfly.zoo.registry import register_model
 class LSTMNet(DepthPolicyNet):
     """CNN encoder + LSTM over the frames of each sequence."""
 
+    model_name = "lstmnet"
     is_recurrent = True
     feature_dim = 10 * 6 * 11
 

@@ -19,6 +19,8 @@ from vitfly.zoo.registry import register_model
 class ResNet18Policy(DepthPolicyNet):
     """timm ResNet-18 encoder + small MLP head; frames are independent (hidden is always None)."""
 
+    model_name = "resnet18"
+
     def __init__(self, use_state: bool = True, head_hidden: int = 256) -> None:
         super().__init__(use_state)
         self.encoder = timm.create_model("resnet18", pretrained=False, in_chans=1, num_classes=0)

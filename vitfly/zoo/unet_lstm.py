@@ -24,6 +24,7 @@ def _conv3(c_in: int, c_out: int) -> nn.Conv2d:
 class UNetLSTM(DepthPolicyNet):
     """U-Net encoder/decoder + conv branch + LSTM head."""
 
+    model_name = "unet_lstm"
     is_recurrent = True
     feature_dim = 10 * 6 * 11 + 16 * 10 * 15
 

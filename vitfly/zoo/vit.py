@@ -56,6 +56,8 @@ class ViTBackbone(DepthPolicyNet):
 class ViT(ViTBackbone):
     """Mix-transformer encoder + fully connected head; frames are independent (hidden is always None)."""
 
+    model_name = "vit"
+
     def __init__(self, use_state: bool = True) -> None:
         super().__init__(use_state)
         self.decoder = nn.Linear(FUSED_DIM, 512)

@@ -19,6 +19,7 @@ from vitfly.zoo.vit import FUSED_DIM, ViTBackbone
 class ViTLSTM(ViTBackbone):
     """Mix-transformer encoder + LSTM over the frames of each sequence."""
 
+    model_name = "vit_lstm"
     is_recurrent = True
 
     def __init__(self, use_state: bool = True, lstm_dropout: float = 0.1) -> None:

@@ -1,0 +1,231 @@
+"""Inference latency of the model zoo, the way the paper's Table I measures it.
+
+Batch 1, one control tick per call, recurrent state carried from call to call (as in flight), a warm-up,
+then ``iters`` individually timed calls (``time.perf_counter``; CUDA synchronised after every call);
+median and 90th percentile in milliseconds. Back ends: ``eager`` (the PyTorch module under
+``torch.inference_mode``) and ``onnxruntime`` (an ONNX export with a fixed batch of 1, checked against
+eager before anything is timed).
+"""
+
+from __future__ import annotations
+
+import gc
+import time
+from collections.abc import Callable, Iterable
+from dataclasses import asdict, dataclass
+
+import numpy as np
+import torch
+from torch import nn
+
+from vitfly.errors import VitflyError
+from vitfly.zoo import create_model
+
+BACKENDS = ("eager", "onnxruntime")
+
+# Paper, Table I: (CPU ms, GPU ms); ResNet-18 has no entry
+PAPER_LATENCY_MS: dict[str, tuple[float, float]] = {
+    "convnet": (0.2, 0.4),
+    "lstmnet": (4.8, 0.7),
+    "unet_lstm": (5.6, 1.7),
+    "vit": (5.6, 1.6),
+    "vit_lstm": (9.2, 3.8),
+}
+PAPER_PARAMS: dict[str, int] = {
+    "convnet": 235_269,
+    "lstmnet": 2_949_937,
+    "unet_lstm": 2_955_822,
+    "vit": 3_101_199,
+    "vit_lstm": 3_563_663,
+}
+
+
+@dataclass
+class LatencyResult:
+    """One model on one back end and device. Times in milliseconds per call (batch 1)."""
+
+    model: str
+    params: int
+    backend: str
+    device: str
+    threads: int
+    batch_size: int
+    iters: int
+    warmup: int
+    median_ms: float
+    p90_ms: float
+    mean_ms: float
+    min_ms: float
+    max_abs_diff: float | None  # fast back end vs eager, from the check before timing
+    paper_cpu_ms: float | None
+    paper_gpu_ms: float | None
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+
+def time_calls(
+    step: Callable[[], object], iters: int, warmup: int, synchronize: Callable[[], None] | None = None
+) -> np.ndarray:
+    """Milliseconds of each of ``iters`` calls of ``step`` after ``warmup`` untimed ones."""
+    if iters < 1:
+        raise VitflyError(f"--iters must be at least 1, got {iters}")
+    if warmup < 0:
+        raise VitflyError(f"--warmup must be >= 0, got {warmup}")
+    for _ in range(warmup):
+        step()
+    if synchronize is not None:
+        synchronize()
+    times = np.empty(iters, dtype=np.float64)
+    gc.collect()
+    gc_was_enabled = gc.isenabled()
+    gc.disable()  # a collection inside the loop would land in one sample
+    try:
+        clock = time.perf_counter
+        for i in range(iters):
+            start = clock()
+            step()
+            if synchronize is not None:
+                synchronize()
+            times[i] = clock() - start
+    finally:
+        if gc_was_enabled:
+            gc.enable()
+    return times * 1000.0
+
+
+def _inputs(device: torch.device, seed: int = 0) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """One frame: random depth in [0, 1], 5 m/s, level attitude (w, x, y, z)."""
+    g = torch.Generator().manual_seed(seed)
+    depth = torch.rand(1, 1, 1, 60, 90, generator=g)
+    speed = torch.full((1, 1, 1), 5.0)
+    quat = torch.tensor([[[1.0, 0.0, 0.0, 0.0]]])
+    return depth.to(device), speed.to(device), quat.to(device)
+
+
+def eager_step(net: nn.Module, device: torch.device) -> Callable[[], object]:
+    """A closure running one tick of ``net`` under inference mode, carrying its recurrent state."""
+    depth, speed, quat = _inputs(device)
+    state = {"hidden": None}
+
+    def step():
+        with torch.inference_mode():
+            out, state["hidden"] = net(depth, speed, quat, state["hidden"])
+        return out
+
+    return step
+
+
+def onnxruntime_step(
+    net: nn.Module, device: torch.device, threads: int, atol: float = 1e-4
+) -> tuple[Callable[[], object], float]:
+    """A closure running one tick through ONNX Runtime (fixed batch 1) and the check's largest difference.
+
+    Raises VitflyError, timing nothing, if ONNX Runtime's outputs differ from eager by more than ``atol``.
+    """
+    import onnxruntime as ort
+
+    from vitfly.deploy.onnx import OnnxPolicyRunner, export_onnx_bytes
+
+    providers = ["CPUExecutionProvider"]
+    if device.type == "cuda":
+        if "CUDAExecutionProvider" not in ort.get_available_providers():
+            raise VitflyError("--backend onnxruntime --device cuda needs onnxruntime-gpu (CUDAExecutionProvider)")
+        providers = ["CUDAExecutionProvider"]
+    runner = OnnxPolicyRunner(export_onnx_bytes(net, batch_size=1), threads=threads, providers=providers)
+    diff = runner.check_against(net.cpu(), atol=atol, batch_size=1)
+    depth, speed, quat = (x.numpy() for x in _inputs(torch.device("cpu")))
+    state = {"hidden": None}
+
+    def step():
+        out, state["hidden"] = runner.step(depth, speed, quat, state["hidden"])
+        return out
+
+    return step, diff
+
+
+def benchmark_model(
+    name: str,
+    backend: str = "eager",
+    device: str = "cpu",
+    threads: int = 1,
+    iters: int = 1000,
+    warmup: int = 100,
+    net: nn.Module | None = None,
+) -> LatencyResult:
+    """Time one registered model (random weights unless ``net`` is given) on one back end and device."""
+    if backend not in BACKENDS:
+        raise VitflyError(f"--backend must be one of {', '.join(BACKENDS)}, got {backend!r}")
+    if threads < 1:
+        raise VitflyError(f"--threads must be at least 1, got {threads}")
+    dev = torch.device(device)
+    if dev.type == "cuda" and not torch.cuda.is_available():
+        raise VitflyError("--device cuda: CUDA is not available on this machine")
+    torch.manual_seed(0)
+    net = (net if net is not None else create_model(name)).eval()
+    params = sum(p.numel() for p in net.parameters())
+    previous_threads = torch.get_num_threads()
+    torch.set_num_threads(threads)
+    try:
+        diff = None
+        if backend == "eager":
+            net = net.to(dev)
+            step = eager_step(net, dev)
+        else:
+            step, diff = onnxruntime_step(net, dev, threads)
+        sync = torch.cuda.synchronize if (dev.type == "cuda" and backend == "eager") else None
+        times = time_calls(step, iters, warmup, sync)
+    finally:
+        torch.set_num_threads(previous_threads)
+    paper = PAPER_LATENCY_MS.get(name)
+    return LatencyResult(
+        model=name,
+        params=params,
+        backend=backend,
+        device=dev.type,
+        threads=threads,
+        batch_size=1,
+        iters=iters,
+        warmup=warmup,
+        median_ms=float(np.median(times)),
+        p90_ms=float(np.percentile(times, 90)),
+        mean_ms=float(times.mean()),
+        min_ms=float(times.min()),
+        max_abs_diff=diff,
+        paper_cpu_ms=paper[0] if paper else None,
+        paper_gpu_ms=paper[1] if paper else None,
+    )
+
+
+def latency_table(results: Iterable[LatencyResult], title: str = "Inference latency (batch 1)"):
+    """A rich Table in the paper's layout: one row per (model, back end), CPU and GPU columns side by side."""
+    from rich.table import Table
+
+    rows: dict[tuple[str, str], dict[str, LatencyResult]] = {}
+    for r in results:
+        rows.setdefault((r.model, r.backend), {})[r.device] = r
+    threads = sorted({r.threads for group in rows.values() for r in group.values()})
+    table = Table(title=f"{title}, {'/'.join(map(str, threads))} thread(s)")
+    for column in ("Model", "Parameters", "Backend"):
+        table.add_column(column)
+    for column in ("CPU median ms", "CPU p90 ms", "GPU median ms", "Paper CPU ms", "Paper GPU ms"):
+        table.add_column(column, justify="right")
+
+    def fmt(x: float | None, digits: int = 3) -> str:
+        return "n/a" if x is None else f"{x:.{digits}f}"
+
+    for (model, backend), by_device in rows.items():
+        cpu, gpu = by_device.get("cpu"), by_device.get("cuda")
+        any_result = cpu or gpu
+        paper = PAPER_LATENCY_MS.get(model)
+        table.add_row(
+            model,
+            f"{any_result.params:,}",
+            backend,
+            fmt(cpu.median_ms if cpu else None),
+            fmt(cpu.p90_ms if cpu else None),
+            fmt(gpu.median_ms if gpu else None),
+            fmt(paper[0] if paper else None, 1),
+            fmt(paper[1] if paper else None, 1),
+        )
+    return table
