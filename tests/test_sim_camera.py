@@ -125,3 +125,32 @@ def test_noise_and_dropout_are_seeded():
     assert 0.002 < np.std(a[valid] - clean[valid]) < 0.008  # 0.05 m / 10 m
     with pytest.raises(ValueError, match="rng"):
         cam.render(sc, (10.0, 0.0, 3.5), np.eye(3))
+
+
+@pytest.mark.parametrize("env", ["trees", "window"])
+def test_trunk_and_wall_depths_lie_on_surfaces_with_nothing_nearer(env):
+    """Each reading is a point on an obstacle (or the ground), and marching along the ray finds no
+    obstacle before it: catches culling or windowing that drops or misplaces a shape."""
+    from vitfly.sim.collision import signed_distances
+
+    cam = DepthCamera(CameraConfig())
+    sc = make_scene(env, "hard", 3)
+    rng = np.random.default_rng(0)
+    tan_h = 1.0
+    tan_v = tan_h * 60 / 90
+    for x in (8.0, 18.0, 30.0):
+        pos = np.array([x, rng.uniform(-2, 2), rng.uniform(2, 5)])
+        rot = yaw(rng.uniform(-20, 20))
+        metric = cam.metric_depth(sc, pos, rot)
+        for row, col in zip(rng.integers(0, 60, 40), rng.integers(0, 90, 40), strict=True):
+            u = tan_h * (1 - 2 * (col + 0.5) / 90)
+            v = tan_v * (1 - 2 * (row + 0.5) / 60)
+            d = rot @ np.array([1.0, u, v])
+            t = metric[row, col]
+            end = t if np.isfinite(t) else 10.0
+            for s in np.arange(0.05, end - 0.05, 0.05):  # nothing in front of the reading
+                assert signed_distances(pos + s * d, sc).min() > -1e-9
+            if np.isfinite(t):
+                hit = pos + t * d
+                surface = min(abs(signed_distances(hit, sc).min()), abs(hit[2]))
+                assert surface < 1e-6

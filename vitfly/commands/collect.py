@@ -4,27 +4,48 @@ from __future__ import annotations
 
 import argparse
 
-from vitfly.sim.collect import collect, load_collect_config
+from vitfly.sim.collect import CollectConfig, collect, load_collect_config
+
+_DEFAULTS = CollectConfig()
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--config", help="collect YAML (e.g. configs/collect/spheres.yaml); flags override it")
+    keep = argparse.SUPPRESS  # unset flags leave the YAML's value (or the built-in default) alone
+    parser.add_argument("--config", default=keep, help="collect YAML, e.g. configs/collect/spheres.yaml")
     parser.add_argument("--out", required=True, help="HDF5 dataset to create, or to resume if it exists")
-    parser.add_argument("--trajectories", type=int, help="number of trajectories in the finished file")
-    parser.add_argument("--speeds", type=float, nargs=2, metavar=("MIN", "MAX"), help="desired speed range, m/s")
-    parser.add_argument("--seed", type=int, help="master seed: trajectory k's scene and speed derive from (seed, k)")
-    parser.add_argument("--workers", type=int, help="worker processes (the output does not depend on it)")
+    parser.add_argument(
+        "--trajectories",
+        type=int,
+        default=keep,
+        help=f"trajectories in the finished file (YAML, else {_DEFAULTS.trajectories})",
+    )
+    parser.add_argument(
+        "--speeds",
+        type=float,
+        nargs=2,
+        metavar=("MIN", "MAX"),
+        default=keep,
+        help=f"desired speed range in m/s, uniform per trajectory (YAML, else {_DEFAULTS.speeds[0]:g} "
+        f"{_DEFAULTS.speeds[1]:g})",
+    )
+    parser.add_argument(
+        "--seed",
+        type=int,
+        default=keep,
+        help=f"master seed: trajectory k's scene and speed derive from (seed, k) (YAML, else {_DEFAULTS.seed})",
+    )
+    parser.add_argument(
+        "--workers",
+        type=int,
+        default=keep,
+        help=f"worker processes; the output does not depend on it (YAML, else {_DEFAULTS.workers})",
+    )
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
 
 
 def run(args: argparse.Namespace) -> int:
-    overrides = {
-        "trajectories": args.trajectories,
-        "speeds": list(args.speeds) if args.speeds else None,
-        "seed": args.seed,
-        "workers": args.workers,
-    }
-    config = load_collect_config(args.config, overrides)
+    overrides = {name: getattr(args, name, None) for name in ("trajectories", "speeds", "seed", "workers")}
+    config = load_collect_config(getattr(args, "config", None), overrides)
     summary = collect(config, args.out, progress=not args.no_progress)
     total_ok = sum(s for s, _ in summary.success_by_speed.values())
     print(

@@ -112,15 +112,25 @@ class DepthCamera:
 
     # -- projection helpers ----------------------------------------------------------------------
 
-    def _pixel_window(self, u_lo, u_hi, v_lo, v_hi) -> tuple[slice, slice]:
-        """Rows and columns whose pixel centres may fall in the tangent-space rectangle."""
+    def _pixel_windows(self, u_lo, u_hi, v_lo, v_hi):
+        """Row and column ranges [r0, r1) x [c0, c1) whose pixel centres may fall in tangent-space boxes."""
         cfg = self.config
-        # u = tan_h * (1 - 2 (col + 0.5) / W)  =>  col = (1 - u / tan_h) * W / 2 - 0.5
-        c0 = math.floor((1.0 - u_hi / self._tan_h) * cfg.width / 2 - 0.5)
-        c1 = math.ceil((1.0 - u_lo / self._tan_h) * cfg.width / 2 - 0.5)
-        r0 = math.floor((1.0 - v_hi / self._tan_v) * cfg.height / 2 - 0.5)
-        r1 = math.ceil((1.0 - v_lo / self._tan_v) * cfg.height / 2 - 0.5)
-        return slice(max(r0, 0), max(min(r1 + 1, cfg.height), 0)), slice(max(c0, 0), max(min(c1 + 1, cfg.width), 0))
+        # u = tan_h (1 - 2 (col + 0.5) / W)  =>  col = (1 - u / tan_h) W / 2 - 0.5; rows likewise
+        c0 = np.clip(np.floor((1.0 - u_hi / self._tan_h) * cfg.width / 2 - 0.5), 0, cfg.width)
+        c1 = np.clip(np.ceil((1.0 - u_lo / self._tan_h) * cfg.width / 2 - 0.5) + 1, 0, cfg.width)
+        r0 = np.clip(np.floor((1.0 - v_hi / self._tan_v) * cfg.height / 2 - 0.5), 0, cfg.height)
+        r1 = np.clip(np.ceil((1.0 - v_lo / self._tan_v) * cfg.height / 2 - 0.5) + 1, 0, cfg.height)
+        return r0.astype(np.int64), r1.astype(np.int64), c0.astype(np.int64), c1.astype(np.int64)
+
+    def _window_pixels(self, r0, r1, c0, c1) -> tuple[np.ndarray, np.ndarray]:
+        """Every (shape index, flat pixel index) pair of the shapes' pixel windows, as two flat arrays."""
+        n_cols = np.maximum(c1 - c0, 0)
+        counts = np.maximum(r1 - r0, 0) * n_cols
+        total = int(counts.sum())
+        sid = np.repeat(np.arange(len(counts)), counts)
+        local = np.arange(total) - np.repeat(np.cumsum(counts) - counts, counts)
+        nc = n_cols[sid]
+        return sid, (r0[sid] + local // nc) * self.config.width + c0[sid] + local % nc
 
     def _points_window(self, points_cam: np.ndarray) -> tuple[slice, slice]:
         """Pixel window of the convex hull of body-frame points (full image if any is behind)."""
@@ -128,7 +138,10 @@ class DepthCamera:
         if np.any(x <= 1e-6):
             return slice(0, self.config.height), slice(0, self.config.width)
         u, v = points_cam[:, 1] / x, points_cam[:, 2] / x
-        return self._pixel_window(u.min(), u.max(), v.min(), v.max())
+        r0, r1, c0, c1 = (
+            int(w[0]) for w in self._pixel_windows(*(np.array([b]) for b in (u.min(), u.max(), v.min(), v.max())))
+        )
+        return slice(r0, max(r1, r0)), slice(c0, max(c1, c0))
 
     # -- casting: each writes min(depth, hit) into the depth buffer ------------------------------
 
@@ -150,25 +163,17 @@ class DepthCamera:
         hu = r * np.sqrt(np.maximum(cx * cx + cy * cy - r2, 0.0))
         hv = r * np.sqrt(np.maximum(cx * cx + cz * cz - r2, 0.0))
         big = 1e6
-        u_lo = np.where(front, (cx * cy - hu) / k, -big)
-        u_hi = np.where(front, (cx * cy + hu) / k, big)
-        v_lo = np.where(front, (cx * cz - hv) / k, -big)
-        v_hi = np.where(front, (cx * cz + hv) / k, big)
-        # u = tan_h (1 - 2 (col + 0.5) / W)  =>  col = (1 - u / tan_h) W / 2 - 0.5; rows likewise
-        c0 = np.clip(np.floor((1.0 - u_hi / self._tan_h) * cfg.width / 2 - 0.5), 0, cfg.width).astype(np.int64)
-        c1 = np.clip(np.ceil((1.0 - u_lo / self._tan_h) * cfg.width / 2 - 0.5) + 1, 0, cfg.width).astype(np.int64)
-        r0 = np.clip(np.floor((1.0 - v_hi / self._tan_v) * cfg.height / 2 - 0.5), 0, cfg.height).astype(np.int64)
-        r1 = np.clip(np.ceil((1.0 - v_lo / self._tan_v) * cfg.height / 2 - 0.5) + 1, 0, cfg.height).astype(np.int64)
-        n_cols = np.maximum(c1 - c0, 0)
-        counts = np.maximum(r1 - r0, 0) * n_cols
-        total = int(counts.sum())
-        if total == 0:
+        sid, pix = self._window_pixels(
+            *self._pixel_windows(
+                np.where(front, (cx * cy - hu) / k, -big),
+                np.where(front, (cx * cy + hu) / k, big),
+                np.where(front, (cx * cz - hv) / k, -big),
+                np.where(front, (cx * cz + hv) / k, big),
+            )
+        )
+        if len(pix) == 0:
             return
-        # every (sphere, pixel-in-its-window) pair, gathered into flat arrays: one vectorised pass
-        sid = np.repeat(np.arange(len(counts)), counts)
-        local = np.arange(total) - np.repeat(np.cumsum(counts) - counts, counts)
-        nc = n_cols[sid]
-        pix = (r0[sid] + local // nc) * cfg.width + c0[sid] + local % nc
+        # every (sphere, pixel-in-its-window) pair in one vectorised pass
         u, v, a = self._u.ravel()[pix], self._v.ravel()[pix], self._a.ravel()[pix]
         b = cx[sid] + cy[sid] * u + cz[sid] * v  # ray . centre
         c = (cx * cx + cy * cy + cz * cz - r2)[sid]  # > 0 when the camera is outside the sphere
@@ -181,30 +186,50 @@ class DepthCamera:
         np.minimum.at(depth.reshape(-1), pix[hit], t[hit])
 
     def _cast_cylinders(self, depth, cylinders, pos, rot, dirs) -> None:
-        # vertical cylinders (side wall + top and bottom caps), solved in the world frame
-        horiz = np.hypot(cylinders[:, 0] - pos[0], cylinders[:, 1] - pos[1]) - cylinders[:, 4]
-        ahead = (cylinders[:, :2] - pos[:2]) @ rot[:2, 0]  # forward component of the axis offset
-        keep = (horiz < self._reach) & (ahead > -cylinders[:, 4])
-        corners = np.array([[sx, sy, sz] for sx in (-1, 1) for sy in (-1, 1) for sz in (0, 1)], dtype=np.float64)
-        for x, y, z0, z1, r in cylinders[keep].tolist():
-            box = np.stack([x + r * corners[:, 0], y + r * corners[:, 1], z0 + (z1 - z0) * corners[:, 2]], axis=1)
-            rows, cols = self._points_window((box - pos) @ rot)
-            dx, dy, dz = (d[rows, cols] for d in dirs)
-            if dx.size == 0:
-                continue
-            ox, oy = pos[0] - x, pos[1] - y
-            a = dx * dx + dy * dy
-            b = dx * ox + dy * oy
-            disc = b * b - a * (ox * ox + oy * oy - r * r)
-            with np.errstate(invalid="ignore", divide="ignore"):
-                t = (-b - np.sqrt(np.maximum(disc, 0.0))) / a
-                z = pos[2] + t * dz
-                best = np.where((disc >= 0) & (t > 0) & (z >= z0) & (z <= z1), t, np.inf)
-                for zc in (z0, z1):  # caps
-                    tc = (zc - pos[2]) / dz
-                    px, py = ox + tc * dx, oy + tc * dy
-                    best = np.where((tc > 0) & (px * px + py * py <= r * r) & (tc < best), tc, best)
-            np.minimum(depth[rows, cols], best, out=depth[rows, cols])
+        # vertical cylinders (side wall + top and bottom caps), solved in the world frame; culled with
+        # the corners of their bounding boxes (body frame): beyond the range, or outside one frustum plane
+        sx = np.array([-1.0, -1.0, -1.0, -1.0, 1.0, 1.0, 1.0, 1.0])
+        sy = np.array([-1.0, -1.0, 1.0, 1.0, -1.0, -1.0, 1.0, 1.0])
+        sz = np.array([0.0, 1.0, 0.0, 1.0, 0.0, 1.0, 0.0, 1.0])
+        x, y, z0, z1, r = (cylinders[:, i : i + 1] for i in range(5))
+        corners = np.stack([x + r * sx, y + r * sy, z0 + (z1 - z0) * sz], axis=-1) - pos  # (K, 8, 3)
+        cam = corners @ rot
+        outside = np.any(np.all(cam @ self._frustum.T < 0.0, axis=1), axis=1)
+        keep = (cam[:, :, 0].min(axis=1) < self.config.max_range_m) & ~outside
+        if not keep.any():
+            return
+        cyl, cam = cylinders[keep], cam[keep]
+        # pixel windows from the projected corners; a box reaching behind the camera: whole image
+        front = np.all(cam[:, :, 0] > 1e-6, axis=1)
+        xc = np.where(front[:, None], cam[:, :, 0], 1.0)
+        u, v = cam[:, :, 1] / xc, cam[:, :, 2] / xc
+        big = 1e6
+        sid, pix = self._window_pixels(
+            *self._pixel_windows(
+                np.where(front, u.min(axis=1), -big),
+                np.where(front, u.max(axis=1), big),
+                np.where(front, v.min(axis=1), -big),
+                np.where(front, v.max(axis=1), big),
+            )
+        )
+        if len(pix) == 0:
+            return
+        dx, dy, dz = (d.ravel()[pix] for d in dirs)
+        ox, oy = pos[0] - cyl[sid, 0], pos[1] - cyl[sid, 1]
+        z0, z1, r2 = cyl[sid, 2], cyl[sid, 3], cyl[sid, 4] ** 2
+        a = dx * dx + dy * dy
+        b = dx * ox + dy * oy
+        disc = b * b - a * (ox * ox + oy * oy - r2)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            t = (-b - np.sqrt(disc)) / a  # side wall, NaN where the ray misses the infinite cylinder
+            z = pos[2] + t * dz
+            best = np.where((t > 0) & (z >= z0) & (z <= z1), t, np.inf)
+            for zc in (z0, z1):  # caps
+                tc = (zc - pos[2]) / dz
+                px, py = ox + tc * dx, oy + tc * dy
+                best = np.where((tc > 0) & (px * px + py * py <= r2) & (tc < best), tc, best)
+        hit = best < np.inf
+        np.minimum.at(depth.reshape(-1), pix[hit], best[hit])
 
     def _cast_boxes(self, depth, boxes, pos, rot, dirs) -> None:
         # axis-aligned boxes: slab method in the world frame
