@@ -214,3 +214,19 @@ def test_export_bytes_fixed_batch_has_static_shapes():
     model = onnx.load_from_string(export_onnx_bytes(create_model("convnet"), batch_size=1))
     depth = model.graph.input[0].type.tensor_type.shape.dim
     assert [d.dim_value for d in depth] == [1, 1, 1, 60, 90]
+
+
+def test_bound_step_matches_the_plain_runner(lstmnet_onnx):
+    path, _ = lstmnet_onnx
+    runner = OnnxPolicyRunner(path)
+    bound = runner.bind(2)
+    depth, speed, quat = _sequence(2, 3, seed=4)
+    expected, _ = runner(depth, speed, quat)
+    for t in range(3):
+        np.copyto(bound.depth, depth[:, t : t + 1].numpy())
+        np.copyto(bound.desired_speed, speed[:, t : t + 1].numpy())
+        np.copyto(bound.quat, quat[:, t : t + 1].numpy())
+        np.testing.assert_allclose(bound(), expected[:, t : t + 1].numpy(), atol=1e-6)
+    assert np.abs(bound.hidden[0]).sum() > 0
+    bound.reset()
+    assert np.abs(bound.hidden[0]).sum() == 0

@@ -234,6 +234,10 @@ class OnnxPolicyRunner:
             return velocity, (h, c)
         return self.session.run(self._outputs, feed)[0], None
 
+    def bind(self, batch_size: int = 1) -> BoundStep:
+        """A zero-copy stepper for a fixed batch (ONNX Runtime I/O binding); see ``BoundStep``."""
+        return BoundStep(self, batch_size)
+
     def __call__(self, depth, desired_speed, quat, hidden=None):
         as_torch = isinstance(depth, torch.Tensor)
         arrays = [_as_float32(x) for x in (depth, desired_speed, quat)]
@@ -294,3 +298,57 @@ def _as_float32(x) -> np.ndarray:
     if isinstance(x, torch.Tensor):
         x = x.detach().cpu().numpy()
     return np.ascontiguousarray(x, dtype=np.float32)
+
+
+class BoundStep:
+    """One control tick per call on pre-allocated, pre-bound buffers (the lowest per-call overhead).
+
+    Write the tick's observation into ``depth`` (B, 1, 1, 60, 90), ``desired_speed`` (B, 1, 1) and
+    ``quat`` (B, 1, 4) (e.g. ``np.copyto``), call, read ``velocity`` (B, 1, 3). The recurrent state
+    stays inside and alternates between two buffer pairs; ``reset()`` zeroes it (a new flight).
+    """
+
+    def __init__(self, runner: OnnxPolicyRunner, batch_size: int = 1) -> None:
+        self.runner = runner
+        self.depth = np.zeros((batch_size, 1, 1, IMAGE_HEIGHT, IMAGE_WIDTH), dtype=np.float32)
+        self.desired_speed = np.zeros((batch_size, 1, 1), dtype=np.float32)
+        self.quat = np.zeros((batch_size, 1, 4), dtype=np.float32)
+        self.quat[..., 0] = 1.0
+        self.velocity = np.zeros((batch_size, 1, 3), dtype=np.float32)
+        self._binding = runner.session.io_binding()
+        for name, array in (("depth", self.depth), ("desired_speed", self.desired_speed), ("quat", self.quat)):
+            self._binding.bind_cpu_input(name, array)
+        self._bind_output("velocity", self.velocity)
+        self._states = None
+        if runner.is_recurrent:
+            self._states = [runner.initial_hidden(batch_size), runner.initial_hidden(batch_size)]
+            self._current = 0
+            self._bind_state()
+
+    def _bind_output(self, name: str, array: np.ndarray) -> None:
+        self._binding.bind_output(name, "cpu", 0, np.float32, list(array.shape), array.ctypes.data)
+
+    def _bind_state(self) -> None:
+        (h_in, c_in), (h_out, c_out) = self._states[self._current], self._states[1 - self._current]
+        self._binding.bind_cpu_input("h0", h_in)
+        self._binding.bind_cpu_input("c0", c_in)
+        self._bind_output("hn", h_out)
+        self._bind_output("cn", c_out)
+
+    @property
+    def hidden(self) -> tuple[np.ndarray, np.ndarray] | None:
+        """The current LSTM state (h, c) (None for feed-forward networks)."""
+        return None if self._states is None else self._states[self._current]
+
+    def reset(self) -> None:
+        if self._states is not None:
+            for pair in self._states:
+                for array in pair:
+                    array.fill(0.0)
+
+    def __call__(self) -> np.ndarray:
+        self.runner.session.run_with_iobinding(self._binding)
+        if self._states is not None:  # the new state becomes the next call's input
+            self._current = 1 - self._current
+            self._bind_state()
+        return self.velocity
