@@ -22,6 +22,7 @@ expert, ``straight``) skips rendering unless ``record_depth`` asks for the frame
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from typing import Protocol, runtime_checkable
@@ -214,8 +215,6 @@ def run_episodes(
     speed_arr = np.array([e.speed for e in envs])
     results: list[EpisodeResult | None] = [None] * n
     hover = (0.0, 0.0, 0.0)
-    # the farthest a drone can move in one tick, with margin: obstacles beyond it are skipped
-    horizon_m = 2.0 * max(15.0, 2.0 * float(speed_arr.max())) / cfg.control_hz + 0.5
 
     with QuadrotorFleet(n, cfg.airframe, cfg.physics_hz) as fleet:
         fleet.reset(np.tile(np.asarray(task.start, dtype=np.float64), (n, 1)))
@@ -232,7 +231,10 @@ def run_episodes(
             for i, e in enumerate(envs):
                 if active[i]:
                     e.tick_contact = False
-                    e.candidates = e.contact.nearby(states[i].position, horizon_m)
+                    # obstacles out of reach before the next tick (twice the distance at the current
+                    # or desired speed, plus margin) are left out of the per-step contact tests
+                    reach = 2.0 * max(math.hypot(*states[i].velocity), e.speed, 5.0) / cfg.control_hz + 0.5
+                    e.candidates = e.contact.nearby(states[i].position, reach)
             # 3. physics steps with the cascaded controller tracking the commands
             cmd_rows = [tuple(c) if a else hover for c, a in zip(commands.tolist(), active, strict=True)]
             for _ in range(substeps):
