@@ -24,17 +24,22 @@ def signed_distances(point, scene: Scene) -> np.ndarray:
     Order: spheres, then cylinders, then boxes (as stored in the scene).
     """
     p = np.asarray(point, dtype=np.float64).reshape(3)
+    parts = []
     sph = scene.spheres
-    d_sph = np.linalg.norm(sph[:, :3] - p, axis=1) - sph[:, 3]
+    if len(sph):
+        rel = sph[:, :3] - p
+        parts.append(np.sqrt(np.einsum("ij,ij->i", rel, rel)) - sph[:, 3])
     cyl = scene.cylinders
-    radial = np.hypot(cyl[:, 0] - p[0], cyl[:, 1] - p[1]) - cyl[:, 4]
-    axial = np.maximum(cyl[:, 2] - p[2], p[2] - cyl[:, 3])
-    d_cyl = _combine(radial, axial)
+    if len(cyl):
+        radial = np.hypot(cyl[:, 0] - p[0], cyl[:, 1] - p[1]) - cyl[:, 4]
+        axial = np.maximum(cyl[:, 2] - p[2], p[2] - cyl[:, 3])
+        parts.append(_combine(radial, axial))
     box = scene.boxes
-    d_box = np.maximum(box[:, :3] - p, p - box[:, 3:])  # (K, 3) per-axis
-    outside = np.linalg.norm(np.maximum(d_box, 0.0), axis=1)
-    d_box = np.where(outside > 0, outside, d_box.max(axis=1, initial=-np.inf))
-    return np.concatenate([d_sph, d_cyl, d_box])
+    if len(box):
+        excess = np.maximum(box[:, :3] - p, p - box[:, 3:])  # (K, 3) per-axis
+        outside = np.linalg.norm(np.maximum(excess, 0.0), axis=1)
+        parts.append(np.where(outside > 0, outside, excess.max(axis=1)))
+    return np.concatenate(parts) if parts else np.zeros(0)
 
 
 def _combine(radial: np.ndarray, axial: np.ndarray) -> np.ndarray:

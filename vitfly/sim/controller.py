@@ -112,13 +112,11 @@ def mix(thrust: float, torques: Vec3, airframe: Airframe) -> tuple[float, float,
     b = torques[1] / airframe.arm_x_m
     c = torques[2] / airframe.torque_coeff
     f_max, k = airframe.max_rotor_thrust_n, airframe.thrust_coeff
-    rotor_thrusts = (
-        (thrust - a - b + c) / 4,
-        (thrust + a + b + c) / 4,
-        (thrust - a + b - c) / 4,
-        (thrust + a - b - c) / 4,
-    )
-    return tuple(math.sqrt(min(max(f, 0.0), f_max) / k) for f in rotor_thrusts)
+    f0 = min(max((thrust - a - b + c) / 4, 0.0), f_max)
+    f1 = min(max((thrust + a + b + c) / 4, 0.0), f_max)
+    f2 = min(max((thrust - a + b - c) / 4, 0.0), f_max)
+    f3 = min(max((thrust + a - b - c) / 4, 0.0), f_max)
+    return math.sqrt(f0 / k), math.sqrt(f1 / k), math.sqrt(f2 / k), math.sqrt(f3 / k)
 
 
 def velocity_control(
