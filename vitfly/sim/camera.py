@@ -71,22 +71,30 @@ class DepthCamera:
 
         position: (3,) camera position, world frame (m). rotation: (3, 3) body-to-world matrix.
         """
+        depth = self._cast_all(scene, position, rotation)
+        depth[depth > self.config.max_range_m] = np.inf
+        return depth
+
+    def _cast_all(self, scene: Scene, position, rotation: np.ndarray) -> np.ndarray:
+        """Nearest hit per pixel (m), ``inf`` for none; hits beyond the range are left in."""
         cfg = self.config
         pos = np.asarray(position, dtype=np.float64).reshape(3)
         rot = np.asarray(rotation, dtype=np.float64).reshape(3, 3)
         depth = np.full((cfg.height, cfg.width), np.inf)
         if len(scene.spheres):
             self._cast_spheres(depth, scene.spheres, pos, rot)
-        if len(scene.cylinders) or len(scene.boxes) or cfg.render_ground:
+        if len(scene.cylinders) or len(scene.boxes):
             # world-frame ray directions, (H, W) per component
             dirs = [rot[i, 0] + rot[i, 1] * self._u + rot[i, 2] * self._v for i in range(3)]
             if len(scene.cylinders):
                 self._cast_cylinders(depth, scene.cylinders, pos, rot, dirs)
             if len(scene.boxes):
                 self._cast_boxes(depth, scene.boxes, pos, rot, dirs)
-            if cfg.render_ground and pos[2] > 0:
-                self._cast_ground(depth, pos, dirs[2])
-        depth[depth > cfg.max_range_m] = np.inf
+            dz = dirs[2]
+        else:
+            dz = rot[2, 0] + rot[2, 1] * self._u + rot[2, 2] * self._v
+        if cfg.render_ground and pos[2] > 0:
+            self._cast_ground(depth, pos, dz)
         return depth
 
     def render(
@@ -97,8 +105,8 @@ class DepthCamera:
         ``rng`` drives noise and dropout; it is required when either is configured.
         """
         cfg = self.config
-        metric = self.metric_depth(scene, position, rotation)
         if cfg.noise_std_m > 0.0 or cfg.dropout_prob > 0.0:
+            metric = self.metric_depth(scene, position, rotation)
             if rng is None:
                 raise ValueError("DepthCamera.render needs an rng when noise or dropout is configured")
             if cfg.noise_std_m > 0.0:
@@ -108,7 +116,8 @@ class DepthCamera:
             if cfg.dropout_prob > 0.0:
                 image[rng.random(image.shape) < cfg.dropout_prob] = 0.0
             return image.astype(np.float32)
-        return np.minimum(metric / cfg.max_range_m, 1.0).astype(np.float32)
+        # beyond the range reads 1, like nothing at all
+        return np.minimum(self._cast_all(scene, position, rotation) / cfg.max_range_m, 1.0).astype(np.float32)
 
     # -- projection helpers ----------------------------------------------------------------------
 
@@ -124,13 +133,15 @@ class DepthCamera:
 
     def _window_pixels(self, r0, r1, c0, c1) -> tuple[np.ndarray, np.ndarray]:
         """Every (shape index, flat pixel index) pair of the shapes' pixel windows, as two flat arrays."""
-        n_cols = np.maximum(c1 - c0, 0)
-        counts = np.maximum(r1 - r0, 0) * n_cols
-        total = int(counts.sum())
-        sid = np.repeat(np.arange(len(counts)), counts)
-        local = np.arange(total) - np.repeat(np.cumsum(counts) - counts, counts)
-        nc = n_cols[sid]
-        return sid, (r0[sid] + local // nc) * self.config.width + c0[sid] + local % nc
+        n_rows = np.maximum(r1 - r0, 0) * (c1 > c0)
+        # one entry per (shape, row): where the row's run of pixels starts, and how long it is
+        row_sid = np.repeat(np.arange(len(n_rows)), n_rows)
+        row = r0[row_sid] + np.arange(len(row_sid)) - np.repeat(np.cumsum(n_rows) - n_rows, n_rows)
+        run = (c1 - c0)[row_sid]
+        start = row * self.config.width + c0[row_sid]
+        # expand the runs: pixel = start of its run + position within the run
+        offset = np.repeat(start - (np.cumsum(run) - run), run)
+        return np.repeat(row_sid, run), offset + np.arange(len(offset))
 
     def _points_window(self, points_cam: np.ndarray) -> tuple[slice, slice]:
         """Pixel window of the convex hull of body-frame points (full image if any is behind)."""
