@@ -157,6 +157,11 @@ def export_onnx(
     return diff
 
 
+# ONNX Runtime fusions that make these small graphs slower: SkipLayerNormalization (residual add + LayerNorm)
+# runs the ViT's 32/64-channel post-norms about 3x slower than the separate Add and LayerNormalization
+DISABLED_OPTIMIZERS = ["SkipLayerNormFusion"]
+
+
 def session_options(threads: int = 1):
     """ONNX Runtime options for low-latency single-stream inference."""
     import onnxruntime as ort
@@ -201,7 +206,10 @@ class OnnxPolicyRunner:
             model = source
         try:
             self.session = ort.InferenceSession(
-                model, session_options(threads), providers=providers or ["CPUExecutionProvider"]
+                model,
+                session_options(threads),
+                providers=providers or ["CPUExecutionProvider"],
+                disabled_optimizers=DISABLED_OPTIMIZERS,
             )
         except Exception as err:
             raise VitflyError(f"{source}: ONNX Runtime cannot load it: {str(err).splitlines()[0][:200]}") from None

@@ -35,6 +35,7 @@ class ViTBackbone(DepthPolicyNet):
             ]
         )  # fmt: skip
         self.pixel_shuffle = nn.PixelShuffle(2)
+        self.upsample = nn.Upsample(size=FUSED_SHAPE[1:], mode="bilinear", align_corners=True)
         self.down_sample = nn.Conv2d(48, FUSED_SHAPE[0], kernel_size=3, padding=1)
 
     def stages(self, frames: torch.Tensor) -> list[torch.Tensor]:
@@ -49,7 +50,7 @@ class ViTBackbone(DepthPolicyNet):
     def fused_features(self, frames: torch.Tensor) -> torch.Tensor:
         first, second = self.stages(frames)
         shuffled = self.pixel_shuffle(second)  # (N, 16, 16, 24)
-        upsampled = F.interpolate(first, size=shuffled.shape[-2:], mode="bilinear", align_corners=True)
+        upsampled = self.upsample(first)  # (N, 32, 16, 24)
         return self.down_sample(torch.cat((shuffled, upsampled), dim=1)).flatten(1)
 
 
