@@ -98,7 +98,7 @@ def test_output_is_the_same_whatever_the_workers(reference, tiny_config, tmp_pat
 def test_kill_9_then_rerun_resumes_to_the_same_file(reference, tiny_config, tmp_path):
     out = tmp_path / "killed.h5"
     cmd = [sys.executable, "-m", "vitfly.cli", "collect", "--config", str(tiny_config), "--out", str(out)]
-    cmd += ["--trajectories", "4", "--no-progress"]
+    cmd += ["--trajectories", "4", "--workers", "2", "--no-progress"]
     proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     try:
         deadline = time.monotonic() + 120
@@ -112,8 +112,15 @@ def test_kill_9_then_rerun_resumes_to_the_same_file(reference, tiny_config, tmp_
                 except Exception:  # noqa: BLE001 - the writer may be mid-creation
                     committed = 0
         assert proc.poll() is None, "collect finished before it could be killed; make the test config longer"
+        workers = children(proc.pid)
+        assert len(workers) == 2
         os.kill(proc.pid, signal.SIGKILL)
         proc.wait()
+        # the worker processes die with it (no orphans flying trajectories nobody will write)
+        deadline = time.monotonic() + 10
+        while any(alive(p) for p in workers) and time.monotonic() < deadline:
+            time.sleep(0.05)
+        assert not any(alive(p) for p in workers)
     finally:
         if proc.poll() is None:
             proc.kill()
@@ -125,6 +132,23 @@ def test_kill_9_then_rerun_resumes_to_the_same_file(reference, tiny_config, tmp_
     assert result.returncode == 0, result.stderr
     assert f"({4 - survived} new)" in result.stdout
     assert_same_data(reference, out)
+
+
+def children(pid: int) -> list[int]:
+    try:
+        with open(f"/proc/{pid}/task/{pid}/children") as f:
+            return [int(p) for p in f.read().split()]
+    except OSError:
+        return []
+
+
+def alive(pid: int) -> bool:
+    """Running (not gone, not a zombie waiting to be reaped)."""
+    try:
+        with open(f"/proc/{pid}/stat") as f:
+            return f.read().rsplit(")", 1)[1].split()[0] != "Z"
+    except OSError:
+        return False
 
 
 def test_unknown_config_key_is_one_line_error_and_no_output(tmp_path, capsys):

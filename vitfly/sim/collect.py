@@ -14,14 +14,18 @@ Example::
 
 from __future__ import annotations
 
+import contextlib
+import ctypes
 import dataclasses
 import json
 import os
+import signal
+import sys
 import time
 from collections.abc import Iterator
 from concurrent.futures import FIRST_COMPLETED, Future, ProcessPoolExecutor, wait
 from dataclasses import dataclass, field
-from multiprocessing import get_context
+from multiprocessing import get_all_start_methods, get_context
 from pathlib import Path
 from typing import Any
 
@@ -189,38 +193,73 @@ class CollectSummary:
     success_by_speed: dict[float, tuple[int, int]]  # speed bin (m/s, nearest 1) -> (successes, trials)
 
 
-def _ordered_records(config: CollectConfig, indices: list[int]) -> Iterator[TrajectoryRecord]:
-    """Records for ``indices`` in order, flown here or by ``config.workers`` processes."""
-    if config.workers == 1 or len(indices) <= 1:
+def _ready(_: int) -> bool:
+    return True
+
+
+def _die_with_parent() -> None:
+    """Worker initializer: on Linux, ask the kernel to kill this worker when the parent dies, so a
+    kill -9 of `vitfly collect` leaves no orphans flying trajectories nobody will write."""
+    if sys.platform.startswith("linux"):
+        with contextlib.suppress(OSError, AttributeError):
+            ctypes.CDLL(None, use_errno=True).prctl(1, signal.SIGKILL)  # PR_SET_PDEATHSIG
+
+
+def _start_pool(workers: int) -> ProcessPoolExecutor | None:
+    """Worker processes for ``workers`` > 1, all started now.
+
+    Called before any HDF5 file is opened and before the progress bar's thread starts, so on Linux
+    the workers can be forked (copies of this process: no re-imports, nothing open to corrupt).
+    """
+    if workers <= 1:
+        return None
+    method = "fork" if "fork" in get_all_start_methods() else "spawn"
+    pool = ProcessPoolExecutor(max_workers=workers, mp_context=get_context(method), initializer=_die_with_parent)
+    list(pool.map(_ready, range(workers)))
+    return pool
+
+
+def _ordered_records(
+    config: CollectConfig, indices: list[int], pool: ProcessPoolExecutor | None
+) -> Iterator[TrajectoryRecord]:
+    """Records for ``indices`` in index order, flown here or by the pool's workers."""
+    if pool is None:
         for k in indices:
             yield fly_trajectory(config, k)
         return
-    # spawn: no fork of a process that may hold HDF5 handles or threads
-    with ProcessPoolExecutor(max_workers=config.workers, mp_context=get_context("spawn")) as pool:
-        pending: dict[int, Future] = {}
-        queue = iter(indices)
-        done_buffer: dict[int, TrajectoryRecord] = {}
-        next_index = 0
-        for k in queue:  # prime: a bounded number in flight keeps memory flat
-            pending[k] = pool.submit(fly_trajectory, config, k)
-            if len(pending) >= 2 * config.workers:
-                break
-        while next_index < len(indices):
-            want = indices[next_index]
-            if want in done_buffer:
-                yield done_buffer.pop(want)
-                next_index += 1
-                continue
+    pending: dict[int, Future] = {}
+    queue = iter(indices)
+    done_buffer: dict[int, TrajectoryRecord] = {}
+    for k in queue:  # prime: a bounded number in flight keeps memory flat
+        pending[k] = pool.submit(fly_trajectory, config, k)
+        if len(pending) >= 2 * config.workers:
+            break
+    for want in indices:
+        while want not in done_buffer:
             finished, _ = wait(list(pending.values()), return_when=FIRST_COMPLETED)
             for k in [k for k, fut in pending.items() if fut in finished]:
                 done_buffer[k] = pending.pop(k).result()
                 nxt = next(queue, None)
                 if nxt is not None:
                     pending[nxt] = pool.submit(fly_trajectory, config, nxt)
+        yield done_buffer.pop(want)
 
 
 def collect(config: CollectConfig, out: str | os.PathLike, progress: bool = True) -> CollectSummary:
     """Fly ``config.trajectories`` expert trajectories into ``out`` (created, or resumed)."""
+    out = Path(out)
+    config.validate()
+    meta = {"made_by": "vitfly collect", "collect": config.content_key()}
+    start = time.perf_counter()
+    pool = _start_pool(config.workers)
+    try:
+        return _collect_into(config, out, meta, pool, progress, start)
+    finally:
+        if pool is not None:
+            pool.shutdown(cancel_futures=True)
+
+
+def _collect_into(config: CollectConfig, out: Path, meta: dict, pool, progress: bool, start: float) -> CollectSummary:
     from rich.console import Console
     from rich.progress import (
         BarColumn,
@@ -231,10 +270,6 @@ def collect(config: CollectConfig, out: str | os.PathLike, progress: bool = True
         TimeRemainingColumn,
     )
 
-    out = Path(out)
-    config.validate()
-    meta = {"made_by": "vitfly collect", "collect": config.content_key()}
-    start = time.perf_counter()
     frames = _existing_frames(out)
     with TrajectoryWriter(out, config=meta, depth_max_m=config.camera.max_range_m) as writer:
         stored = writer.config.get("collect")
@@ -261,7 +296,7 @@ def collect(config: CollectConfig, out: str | os.PathLike, progress: bool = True
             disable=not progress,
         ) as bar:
             task = bar.add_task(config.env, total=config.trajectories, completed=done, frames=frames)
-            for rec in _ordered_records(config, todo):
+            for rec in _ordered_records(config, todo, pool):
                 writer.append(rec)
                 new += 1
                 frames += rec.length
