@@ -15,7 +15,7 @@
 - LSTMs run as their cell equations written out (``lstm_inference``): at batch 1 a handful of small
   products beat ONNX Runtime's LSTM kernel several times over;
 - in the ViT, the decoder Linear and the first head Linear (nothing non-linear between them) are folded
-  into one smaller product.
+  into one smaller product; in the ViT+LSTM the decoder is folded into the LSTM's first input product.
 
 The original network is left untouched; the export checks the copy against it.
 """
@@ -32,6 +32,7 @@ from vitfly.zoo.layers import STATE_DIM, SNLinear
 from vitfly.zoo.mix_transformer import EfficientSelfAttention, MixFFN
 from vitfly.zoo.recurrent import lstm_inference
 from vitfly.zoo.vit import ViT
+from vitfly.zoo.vit_lstm import ViTLSTM
 
 # ONNX Runtime's blocked convolution kernels need channel counts per group in multiples of this
 CHANNEL_BLOCK = 16
@@ -207,6 +208,43 @@ class _FoldedViT(nn.Module):
         return self.vit.nn_fc2(x), None
 
 
+class _FoldedViTLSTM(nn.Module):
+    """A ViT+LSTM whose decoder is multiplied into the LSTM's layer-0 input weights (shares ``net``'s modules)."""
+
+    is_recurrent = True
+
+    def __init__(self, net: ViTLSTM) -> None:
+        super().__init__()
+        self.net = net
+        self.use_state = net.use_state
+        self.model_name = net.model_name
+        lstm, decoder = net.lstm, net.decoder
+        with torch.no_grad():
+            split = decoder.out_features
+            w_ih = lstm.weight_ih_l0
+            w_features, w_state = w_ih[:, :split], w_ih[:, split:]
+            self.gates_features = nn.Linear(decoder.in_features, w_ih.shape[0])
+            self.gates_features.weight.copy_(w_features @ decoder.weight)
+            self.gates_features.bias.copy_(w_features @ decoder.bias + lstm.bias_ih_l0 + lstm.bias_hh_l0)
+            self.gates_state = nn.Linear(STATE_DIM, w_ih.shape[0], bias=False)
+            self.gates_state.weight.copy_(w_state)
+
+    def initial_hidden(self, batch_size: int, device=None, dtype=None):
+        return self.net.initial_hidden(batch_size, device, dtype)
+
+    def forward(self, depth, desired_speed, quat, hidden=None):
+        from vitfly.zoo.base import IMAGE_HEIGHT, IMAGE_WIDTH, check_inputs
+        from vitfly.zoo.layers import state_vector
+
+        b, t = check_inputs(depth, desired_speed, quat)
+        fused = self.net.fused_features(depth.reshape(b * t, 1, IMAGE_HEIGHT, IMAGE_WIDTH)).reshape(b, t, -1)
+        gates = self.gates_features(fused) + self.gates_state(state_vector(desired_speed, quat, self.use_state))
+        if hidden is None:
+            hidden = self.net.initial_hidden(b, depth.device, depth.dtype)
+        out, hidden = lstm_inference(self.net.lstm, None, hidden, first_input_gates=gates)
+        return self.net.nn_fc2(out), hidden
+
+
 def _replace_modules(module: nn.Module) -> None:
     for name, child in module.named_children():
         if isinstance(child, SNLinear):
@@ -229,4 +267,6 @@ def inference_copy(net: nn.Module) -> nn.Module:
     _replace_modules(copy_)
     if isinstance(copy_, ViT):
         copy_ = _FoldedViT(copy_).eval()
+    elif isinstance(copy_, ViTLSTM):
+        copy_ = _FoldedViTLSTM(copy_).eval()
     return copy_

@@ -53,20 +53,29 @@ def run_lstm(lstm: nn.LSTM, x: torch.Tensor, hidden: Hidden | None) -> tuple[tor
     return lstm_inference(lstm, x, hidden)
 
 
-def lstm_inference(lstm: nn.LSTM, x: torch.Tensor, hidden: Hidden) -> tuple[torch.Tensor, Hidden]:
-    """``nn.LSTM`` eval-mode arithmetic as plain tensor ops (no dropout; gate order i, f, g, o)."""
+def lstm_inference(
+    lstm: nn.LSTM, x: torch.Tensor | None, hidden: Hidden, first_input_gates: torch.Tensor | None = None
+) -> tuple[torch.Tensor, Hidden]:
+    """``nn.LSTM`` eval-mode arithmetic as plain tensor ops (no dropout; gate order i, f, g, o).
+
+    ``first_input_gates`` (B, T, 4H), if given, replaces layer 0's ``x W_ih^T + b_ih + b_hh`` (x is
+    then unused): lets an inference rewrite fold a preceding linear layer into it.
+    """
     h0, c0 = hidden
     size = lstm.hidden_size
-    t_steps = x.shape[1]
+    t_steps = (x if first_input_gates is None else first_input_gates).shape[1]
     layer_input = x
     h_last, c_last = [], []
     for layer in range(lstm.num_layers):
-        w_ih = getattr(lstm, f"weight_ih_l{layer}")
         w_hh_t = getattr(lstm, f"weight_hh_l{layer}").t()
-        bias = None
-        if lstm.bias:
-            bias = getattr(lstm, f"bias_ih_l{layer}") + getattr(lstm, f"bias_hh_l{layer}")
-        input_gates = torch.nn.functional.linear(layer_input, w_ih, bias)  # (B, T, 4H) for all steps at once
+        if layer == 0 and first_input_gates is not None:
+            input_gates = first_input_gates
+        else:
+            bias = None
+            if lstm.bias:
+                bias = getattr(lstm, f"bias_ih_l{layer}") + getattr(lstm, f"bias_hh_l{layer}")
+            w_ih = getattr(lstm, f"weight_ih_l{layer}")
+            input_gates = torch.nn.functional.linear(layer_input, w_ih, bias)  # (B, T, 4H), all steps at once
         h, c = h0[layer], c0[layer]
         outputs = []
         for t in range(t_steps):
