@@ -81,6 +81,10 @@ def _check_type(value, hint, source: str, key: str):
             return None
         hint = next(a for a in args if a is not type(None))
         origin, args = typing.get_origin(hint), typing.get_args(hint)
+    if hint is dict or origin is dict:
+        if isinstance(value, dict):
+            return value
+        raise VitflyError(f"{source}: field {key!r} must be a mapping, got {value!r}")
     if origin is list:
         items = value if isinstance(value, list) else [value]
         return [_check_type(v, args[0], source, key) for v in items]

@@ -10,8 +10,12 @@ appended to ``DIR/trials.jsonl`` at once (``vitfly.eval.records``), from whichev
 
 from __future__ import annotations
 
+import contextlib
+import ctypes
 import math
 import os
+import signal
+import sys
 import time
 import zlib
 from collections.abc import Callable, Sequence
@@ -153,6 +157,9 @@ _WORKER: dict = {}
 def _worker_init(source: PolicySource, threads: int) -> None:
     import torch
 
+    if sys.platform.startswith("linux"):  # die with the parent: a killed sweep leaves no orphans flying
+        with contextlib.suppress(OSError, AttributeError):
+            ctypes.CDLL(None, use_errno=True).prctl(1, signal.SIGKILL)  # PR_SET_PDEATHSIG
     torch.set_num_threads(threads)
     _WORKER["policy"] = source.build()
 

@@ -1,0 +1,213 @@
+"""The main job: collect expert data if missing, train a policy, fly it against ``expert`` and ``straight``.
+
+Stages, each resumable (a rerun skips what is finished):
+
+1. collect: ``vitfly.sim.collect.collect`` fills the dataset up to ``collect.trajectories``;
+2. train: ``vitfly.training.train_policy`` into ``OUT/train`` (resumes from ``last.ckpt``); a
+   finished stage leaves ``OUT/train/done.json`` naming the checkpoint;
+3. evaluate: the trained policy, then each baseline, over the same scenes into ``OUT/eval``
+   (``trials.jsonl`` resumes per trial);
+4. report: ``OUT/eval/summary.csv``/``.md``, the plots, a depth GIF, the comparison table on the
+   console, and ``OUT/pipeline.json`` (success rates, whether the policy beat ``straight``, timings).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import os
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from vitfly.errors import VitflyError
+from vitfly.eval.atomic import write_text
+from vitfly.eval.config import SweepConfig, dataclass_from_dict, read_yaml
+
+
+@dataclass
+class TrainStage:
+    """Arguments of ``vitfly.training.train_policy``."""
+
+    model: str = "convnet"
+    use_state: bool = True
+    max_epochs: int = 6
+    batch_size: int = 8
+    val_fraction: float = 0.2
+    seed: int = 0
+    policy_kwargs: dict = field(default_factory=dict)  # PolicyModule: lr, warmup_epochs, tbptt_steps, ...
+    data_kwargs: dict = field(default_factory=dict)  # TrajectoryDataModule: cache_mb, num_workers, ...
+    trainer_kwargs: dict = field(default_factory=dict)  # lightning.Trainer
+
+
+@dataclass
+class EvalStage:
+    """The closed-loop comparison (see ``SweepConfig`` for the fields)."""
+
+    env: list[str] = field(default_factory=lambda: ["spheres"])
+    preset: str = "medium"
+    speeds: list[float] = field(default_factory=lambda: [3.0, 5.0])
+    trials: int = 20
+    seed: int = 1000  # not the collection seed: the policy flies scenes it has not seen
+    num_envs: int = 20
+    workers: int = 1
+    threads: int = 1
+    backend: str = "eager"
+    timeout_s: float | None = None
+
+
+@dataclass
+class PipelineConfig:
+    out: str = "runs/quickstart"
+    data: str = "data/quickstart_spheres.h5"
+    collect_config: str | None = "configs/collect/spheres.yaml"  # base collect YAML
+    collect: dict = field(default_factory=dict)  # its overrides: trajectories, speeds, seed, workers, ...
+    train: TrainStage = field(default_factory=TrainStage)
+    evaluate: EvalStage = field(default_factory=EvalStage)
+    baselines: list[str] = field(default_factory=lambda: ["expert", "straight"])
+    threads: int = 0  # torch threads for training; 0 = all cores
+    wandb_project: str | None = None
+
+    @property
+    def train_dir(self) -> Path:
+        return Path(self.out) / "train"
+
+    @property
+    def eval_dir(self) -> Path:
+        return Path(self.out) / "eval"
+
+
+def load_pipeline_config(path: str | os.PathLike | None, overrides: dict | None = None) -> PipelineConfig:
+    """Defaults < YAML (sections ``train`` and ``evaluate`` nested) < overrides (top-level keys)."""
+    data = dict(read_yaml(path)) if path else {}
+    source = str(path) if path else "pipeline config"
+    data.update({k: v for k, v in (overrides or {}).items() if v is not None})
+    train = dataclass_from_dict(TrainStage, data.pop("train", None) or {}, f"{source}: train")
+    evaluate = dataclass_from_dict(EvalStage, data.pop("evaluate", None) or {}, f"{source}: evaluate")
+    cfg = dataclasses.replace(dataclass_from_dict(PipelineConfig, data, source), train=train, evaluate=evaluate)
+    for name in cfg.baselines:
+        if name not in ("expert", "straight"):
+            raise VitflyError(f"{source}: field 'baselines' has {name!r}; expected expert and/or straight")
+    from vitfly.zoo import list_models
+
+    if cfg.train.model not in list_models():
+        raise VitflyError(f"{source}: train.model {cfg.train.model!r} unknown; known: {', '.join(list_models())}")
+    sweep_config(cfg.evaluate, cfg.eval_dir, "expert").validate(f"{source}: evaluate")
+    return cfg
+
+
+def sweep_config(e: EvalStage, out_dir: str | Path, policy: str, name: str | None = None,
+                 gif: bool = False) -> SweepConfig:
+    """The sweep of one policy with the evaluation stage's settings, into ``out_dir``."""
+    return SweepConfig(policy=policy, name=name, env=list(e.env), preset=e.preset, speeds=list(e.speeds),
+                       trials=e.trials, seed=e.seed, out=str(out_dir), num_envs=e.num_envs, workers=e.workers,
+                       threads=e.threads, backend=e.backend, timeout_s=e.timeout_s, gif=gif, plots=False)
+
+
+def stage_collect(collect_config: str | None, overrides: dict, data: str | Path, progress: bool = True) -> dict:
+    """Fill ``data`` with expert trajectories up to the configured count (nothing to do if complete)."""
+    from vitfly.sim.collect import collect, load_collect_config
+
+    collect_cfg = load_collect_config(collect_config, overrides)
+    Path(data).parent.mkdir(parents=True, exist_ok=True)
+    summary = collect(collect_cfg, data, progress=progress)
+    ok = sum(s for s, _ in summary.success_by_speed.values())
+    print(f"[collect] {summary.path}: {summary.trajectories} trajectories ({summary.new_trajectories} new), "
+          f"{summary.frames} frames, expert success {ok}/{summary.trajectories}")
+    return {"trajectories": summary.trajectories, "new": summary.new_trajectories, "frames": summary.frames}
+
+
+def stage_train(t: TrainStage, data: str | Path, train_dir: Path, threads: int = 0, progress: bool = True) -> Path:
+    """Train (or resume, or skip if done with the same settings); return the best checkpoint."""
+    marker = Path(train_dir) / "done.json"
+    wanted = dataclasses.asdict(t) | {"data": str(data)}
+    if marker.exists():
+        done = json.loads(marker.read_text())
+        if done.get("train") == wanted and Path(done["checkpoint"]).exists():
+            print(f"[train] done before: {done['checkpoint']}")
+            return Path(done["checkpoint"])
+        # other settings (e.g. more epochs): train_policy goes on from last.ckpt
+    import torch
+
+    from vitfly.training import train_policy
+
+    torch.set_num_threads(threads or os.cpu_count() or 1)
+    ckpt = train_policy(data, t.model, train_dir, use_state=t.use_state, max_epochs=t.max_epochs,
+                        batch_size=t.batch_size, val_fraction=t.val_fraction, seed=t.seed,
+                        policy_kwargs=t.policy_kwargs, data_kwargs=t.data_kwargs,
+                        trainer_kwargs={"enable_model_summary": False, **t.trainer_kwargs}, progress_bar=progress)
+    write_text(marker, json.dumps({"checkpoint": str(ckpt), "train": wanted}) + "\n")
+    print(f"[train] {t.model} (use_state={t.use_state}): {ckpt}")
+    return ckpt
+
+
+def stage_evaluate(e: EvalStage, out_dir: Path, policies: list[tuple[str, str | None]], progress: bool = True,
+                   gif_for: int | None = 0) -> None:
+    """Fly each (policy, label) over the same scenes into ``out_dir``; a depth GIF of ``policies[gif_for]``."""
+    from vitfly.eval.evaluation import depth_gif
+    from vitfly.eval.sweep import run_sweep
+
+    for policy, name in policies:
+        sweep = sweep_config(e, out_dir, policy, name)
+        outcome = run_sweep(sweep, progress=progress)
+        print(f"[evaluate] {sweep.label}: {outcome.flown} trials flown, {outcome.skipped} done before")
+    if gif_for is not None:
+        depth_gif(sweep_config(e, out_dir, *policies[gif_for], gif=True))
+
+
+def success_by_policy(rows: list[dict]) -> dict[str, float]:
+    """Success rate over all of a policy's trials (every env and speed; equal trials per cell)."""
+    totals: dict[str, list[float]] = {}
+    for r in rows:
+        t = totals.setdefault(r["policy"], [0.0, 0.0])
+        t[0] += r["success_rate"] * r["trials"]
+        t[1] += r["trials"]
+    return {p: s / n for p, (s, n) in totals.items() if n}
+
+
+def run_pipeline(cfg: PipelineConfig, progress: bool = True) -> dict:
+    """All stages; returns (and writes to ``OUT/pipeline.json``) the outcome."""
+    from vitfly.eval.evaluation import write_outputs
+    from vitfly.eval.report import print_table
+
+    timings: dict[str, float] = {}
+    t0 = time.perf_counter()
+    collected = stage_collect(cfg.collect_config, cfg.collect, cfg.data, progress)
+    timings["collect_s"] = time.perf_counter() - t0
+    t1 = time.perf_counter()
+    checkpoint = stage_train(cfg.train, cfg.data, cfg.train_dir, cfg.threads, progress)
+    timings["train_s"] = time.perf_counter() - t1
+    t2 = time.perf_counter()
+    learned = (str(checkpoint), cfg.train.model)
+    stage_evaluate(cfg.evaluate, cfg.eval_dir, [learned, *((b, None) for b in cfg.baselines)], progress)
+    timings["evaluate_s"] = time.perf_counter() - t2
+    t3 = time.perf_counter()
+    rows, files = write_outputs(cfg.eval_dir, with_plots=True, title="vitfly quick start")
+    timings["report_s"] = time.perf_counter() - t3
+    timings["total_s"] = time.perf_counter() - t0
+    success = success_by_policy(rows)
+    model = cfg.train.model
+    beat = "straight" in success and success.get(model, 0.0) > success["straight"]
+    print_table(rows, title=f"{model} vs {', '.join(cfg.baselines)} ({cfg.eval_dir})")
+    line = ", ".join(f"{p} {100 * s:.0f} %" for p, s in sorted(success.items()))
+    verdict = "beats" if beat else "does NOT beat"
+    print(f"success over all trials: {line}; {model} {verdict} straight. Took {timings['total_s']:.0f} s.")
+    outcome = {
+        "checkpoint": str(checkpoint),
+        "dataset": cfg.data,
+        "collected": collected,
+        "success_rate": success,
+        "beats_straight": bool(beat),
+        "timings_s": timings,
+        "files": {k: str(v) for k, v in files.items()},
+        "config": dataclasses.asdict(cfg),
+    }
+    write_text(Path(cfg.out) / "pipeline.json", json.dumps(outcome, indent=2) + "\n")
+    if cfg.wandb_project:
+        from vitfly.eval.wandb_log import log_evaluation
+
+        images = {k: Path(v) for k, v in files.items() if Path(v).suffix == ".png"}
+        images.update({p.stem: p for p in cfg.eval_dir.glob("depth_*.gif")})
+        log_evaluation(cfg.wandb_project, rows, images, cfg.out, run_name="pipeline", config=outcome["config"])
+    print("wrote " + ", ".join(str(p) for p in [*files.values(), Path(cfg.out) / "pipeline.json"]))
+    return outcome
