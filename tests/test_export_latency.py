@@ -230,3 +230,10 @@ def test_bound_step_matches_the_plain_runner(lstmnet_onnx):
     assert np.abs(bound.hidden[0]).sum() > 0
     bound.reset()
     assert np.abs(bound.hidden[0]).sum() == 0
+
+
+def test_unoptimised_export_of_a_spectral_norm_lstm_network():
+    torch.manual_seed(5)
+    net = create_model("lstmnet").eval()  # SN layers and nn.LSTM traced as written
+    runner = OnnxPolicyRunner(export_onnx_bytes(net, optimize=False))
+    assert runner.check_against(net) < 1e-5

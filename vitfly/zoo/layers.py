@@ -20,6 +20,16 @@ STATE_DIM = 5
 INIT_POWER_ITERATIONS = 15
 
 
+def is_tracing() -> bool:
+    """True while torch.jit / torch.export / torch.compile / the ONNX exporter trace the network."""
+    return (
+        torch.jit.is_tracing()
+        or torch.onnx.is_in_onnx_export()
+        or torch.compiler.is_compiling()
+        or torch.compiler.is_exporting()
+    )
+
+
 def min_pool2d(x: torch.Tensor, kernel_size: int, stride: int = 1) -> torch.Tensor:
     """Min-pool: ``-max_pool2d(-x)``."""
     return -F.max_pool2d(-x, kernel_size, stride)
@@ -80,7 +90,7 @@ class SNLinear(nn.Module):
     @property
     def weight(self) -> torch.Tensor:
         """The spectrally normalised weight (out_features, in_features)."""
-        if self.training or torch.is_grad_enabled():
+        if self.training or torch.is_grad_enabled() or is_tracing():
             return self._normalised_weight()
         w, u, v = self.weight_orig, self.weight_u, self.weight_v
         if w.is_inference() or u.is_inference() or v.is_inference():

@@ -11,17 +11,9 @@ import torch
 from torch import nn
 
 from vitfly.errors import VitflyError
+from vitfly.zoo.layers import is_tracing
 
 Hidden = tuple[torch.Tensor, torch.Tensor]
-
-
-def _tracing() -> bool:
-    return (
-        torch.jit.is_tracing()
-        or torch.onnx.is_in_onnx_export()
-        or torch.compiler.is_compiling()
-        or torch.compiler.is_exporting()
-    )
 
 
 def zero_hidden(lstm: nn.LSTM, batch_size: int, device=None, dtype=None) -> Hidden:
@@ -45,9 +37,9 @@ def run_lstm(lstm: nn.LSTM, x: torch.Tensor, hidden: Hidden | None) -> tuple[tor
     b = x.shape[0]
     if hidden is None:
         hidden = zero_hidden(lstm, b, x.device, x.dtype)
-    elif not _tracing():
+    elif not is_tracing():
         check_hidden(lstm, hidden, b)
-    if lstm.training or torch.is_grad_enabled() or _tracing():
+    if lstm.training or torch.is_grad_enabled() or is_tracing():
         out, (h, c) = lstm(x, tuple(hidden))
         return out, (h, c)
     return lstm_inference(lstm, x, hidden)
