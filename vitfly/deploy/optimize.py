@@ -107,8 +107,9 @@ class ConvMixFFN(nn.Module):
 class FoldedAttention(nn.Module):
     """``EfficientSelfAttention`` with the query scale and the output projection folded in.
 
-    out = sum_h softmax(q_h k_h^T / sqrt(d)) (v_h Wf_h^T) + bf, where Wf_h are the output projection's
-    columns for head h; the per-head value projections are stacked so one product serves all heads.
+    out = sum_h softmax(q_h k_h^T / sqrt(d)) (v_h Wf_h^T + bf / heads), where Wf_h are the output
+    projection's columns for head h; the per-head value projections are stacked so one product serves all
+    heads.
     """
 
     def __init__(self, attn: EfficientSelfAttention) -> None:
@@ -131,8 +132,9 @@ class FoldedAttention(nn.Module):
             for head in range(heads):
                 rows = slice(head * d, (head + 1) * d)
                 self.value.weight[head * c : (head + 1) * c].copy_(w_f[:, rows] @ w_v[rows])
-                self.value.bias[head * c : (head + 1) * c].copy_(w_f[:, rows] @ b_v[rows])
-            self.out_bias = nn.Parameter(attn.finalLayer.bias.detach().clone())
+                # each head's attention rows sum to one, so the output bias splits over the heads' values
+                bias = w_f[:, rows] @ b_v[rows] + attn.finalLayer.bias / heads
+                self.value.bias[head * c : (head + 1) * c].copy_(bias)
 
     def forward(self, x: torch.Tensor, h: int, w: int) -> torch.Tensor:
         c, heads, d = self.channels, self.num_heads, self.head_dim
@@ -145,7 +147,7 @@ class FoldedAttention(nn.Module):
         weights = torch.softmax(q @ k, dim=-1)  # (N, heads, L, L')
         v = self.value(reduced).reshape(-1, r, heads, c).transpose(1, 2).reshape(-1, heads * r, c)
         weights = weights.transpose(1, 2).reshape(-1, length, heads * r)  # heads side by side
-        return weights @ v + self.out_bias
+        return weights @ v
 
 
 class UnrolledLSTM(nn.LSTM):
