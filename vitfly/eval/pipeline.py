@@ -183,6 +183,7 @@ def run_pipeline(cfg: PipelineConfig, progress: bool = True) -> dict:
     timings["evaluate_s"] = time.perf_counter() - t2
     t3 = time.perf_counter()
     rows, files = write_outputs(cfg.eval_dir, with_plots=True, title="vitfly quick start")
+    files.update({p.stem: p for p in sorted(cfg.eval_dir.glob("depth_*.gif"))})
     timings["report_s"] = time.perf_counter() - t3
     timings["total_s"] = time.perf_counter() - t0
     success = success_by_policy(rows)
@@ -206,8 +207,7 @@ def run_pipeline(cfg: PipelineConfig, progress: bool = True) -> dict:
     if cfg.wandb_project:
         from vitfly.eval.wandb_log import log_evaluation
 
-        images = {k: Path(v) for k, v in files.items() if Path(v).suffix == ".png"}
-        images.update({p.stem: p for p in cfg.eval_dir.glob("depth_*.gif")})
+        images = {k: Path(v) for k, v in files.items() if Path(v).suffix in (".png", ".gif")}
         log_evaluation(cfg.wandb_project, rows, images, cfg.out, run_name="pipeline", config=outcome["config"])
     print("wrote " + ", ".join(str(p) for p in [*files.values(), Path(cfg.out) / "pipeline.json"]))
     return outcome

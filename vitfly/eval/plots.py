@@ -82,7 +82,7 @@ def plot_vs_speed(rows: Sequence[dict], panels: Sequence[tuple[str, str, bool]],
                 ax.set_title(env)
     handles, labels = axes[0][0].get_legend_handles_labels()
     if handles:
-        fig.legend(handles, labels, loc="outside right upper")
+        fig.legend(handles, labels, loc="outside lower center", ncols=min(len(labels), 4))
     if title:
         fig.suptitle(title)
     return _save(fig, Path(path))

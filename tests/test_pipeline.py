@@ -1,0 +1,85 @@
+"""`vitfly pipeline`: the quick-start config, bad configs, and a tiny run end to end with resume."""
+
+import json
+
+import pytest
+
+from vitfly.cli import main
+from vitfly.eval.pipeline import load_pipeline_config, success_by_policy
+
+TINY = """
+out: {out}
+data: {data}
+collect:
+  trajectories: 6
+  speeds: [3.0, 4.0]
+  workers: 1
+train:
+  model: convnet
+  max_epochs: 1
+  batch_size: 4
+  policy_kwargs: {{lr: 1.0e-3, warmup_epochs: 0, tbptt_steps: 128}}
+evaluate:
+  speeds: [4.0]
+  trials: 3
+  num_envs: 3
+  timeout_s: 4.0
+baselines: [expert, straight]
+"""
+
+
+def test_quickstart_config_loads():
+    cfg = load_pipeline_config("configs/quickstart.yaml")
+    assert cfg.train.model == "convnet" and cfg.baselines == ["expert", "straight"]
+    assert cfg.evaluate.seed != cfg.collect["seed"]  # evaluation scenes are not the training scenes
+    assert cfg.collect["trajectories"] >= 100
+
+
+@pytest.mark.parametrize(("text", "message"), [
+    ("train: {model: convnett}", "train.model 'convnett' unknown"),
+    ("evaluate: {speeds: [0]}", "speeds"),
+    ("baselines: [oracle]", "baselines"),
+    ("trian: {}", "unknown field 'trian'"),
+    ("train: {max_epochs: many}", "max_epochs"),
+])
+def test_bad_config_is_one_line(tmp_path, capsys, text, message):
+    f = tmp_path / "p.yaml"
+    f.write_text(text)
+    assert main(["pipeline", "--config", str(f), "--out", str(tmp_path / "run")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and message in err[0] and str(f) in err[0]
+    assert not (tmp_path / "run").exists()
+
+
+def test_success_by_policy_weights_cells_by_trials():
+    rows = [{"policy": "a", "success_rate": 0.5, "trials": 2}, {"policy": "a", "success_rate": 1.0, "trials": 6},
+            {"policy": "b", "success_rate": 0.0, "trials": 4}]
+    assert success_by_policy(rows) == {"a": pytest.approx(7 / 8), "b": 0.0}
+
+
+@pytest.mark.slow
+def test_tiny_pipeline_end_to_end_and_resume(tmp_path, capsys):
+    out, data = tmp_path / "run", tmp_path / "data" / "d.h5"
+    cfg = tmp_path / "tiny.yaml"
+    cfg.write_text(TINY.format(out=out, data=data))
+    assert main(["pipeline", "--config", str(cfg), "--no-progress"]) == 0
+    text = capsys.readouterr().out
+    assert "[collect]" in text and "[train]" in text and "success over all trials" in text
+    result = json.loads((out / "pipeline.json").read_text())
+    assert set(result["success_rate"]) == {"convnet", "expert", "straight"}
+    assert isinstance(result["beats_straight"], bool)
+    ev = out / "eval"
+    for name in ("summary.csv", "summary.md", "rates_vs_speed.png", "energy_vs_speed.png", "paths_spheres.png",
+                 "time_in_collision_vs_speed.png", "depth_convnet_spheres.gif"):
+        assert (ev / name).stat().st_size > 0, name
+    trials = [json.loads(x) for x in (ev / "trials.jsonl").read_text().splitlines()]
+    assert len(trials) == 9
+    # every policy flew the same scenes
+    seeds = {p: sorted(t["scene_seed"] for t in trials if t["policy"] == p) for p in ("convnet", "expert", "straight")}
+    assert seeds["convnet"] == seeds["expert"] == seeds["straight"]
+
+    # rerun: every stage is skipped
+    assert main(["pipeline", "--config", str(cfg), "--no-progress"]) == 0
+    again = capsys.readouterr().out
+    assert "(0 new)" in again and "[train] done before" in again
+    assert again.count("0 trials flown, 3 done before") == 3
