@@ -54,10 +54,23 @@ class EfficientSelfAttention(nn.Module):
         self.query = nn.Linear(channels, channels)
         self.finalLayer = nn.Linear(channels, channels)
 
+    def reduce(self, x: torch.Tensor, h: int, w: int) -> torch.Tensor:
+        """``cn1`` (kernel = stride = R, no padding) on the token grid, as one product over R x R patches.
+
+        Same arithmetic as the convolution, without its per-call set-up cost on tiny outputs (2 or 6
+        tokens here); returns tokens (N, L', C).
+        """
+        r = self.cn1.kernel_size[0]
+        c = x.shape[-1]
+        hr, wr = h // r, w // r
+        grid = x.reshape(-1, h, w, c)[:, : hr * r, : wr * r]  # the rows/columns the convolution covers
+        patches = grid.reshape(-1, hr, r, wr, r, c).permute(0, 1, 3, 5, 2, 4).reshape(-1, hr * wr, c * r * r)
+        return torch.nn.functional.linear(patches, self.cn1.weight.reshape(self.cn1.out_channels, -1), self.cn1.bias)
+
     def forward(self, x: torch.Tensor, h: int, w: int) -> torch.Tensor:
         n, length, c = x.shape
         d = c // self.num_heads
-        reduced = self.ln1(grid_to_tokens(self.cn1(tokens_to_grid(x, h, w))))  # (N, L', C)
+        reduced = self.ln1(self.reduce(x, h, w))  # (N, L', C)
         kv = self.keyValueExtractor(reduced).reshape(n, -1, 2, self.num_heads, d).permute(2, 0, 3, 1, 4)
         q = self.query(x).reshape(n, length, self.num_heads, d).transpose(1, 2)  # (N, heads, L, d)
         out = F.scaled_dot_product_attention(q, kv[0], kv[1])  # softmax(q k^T / sqrt(d)) v
