@@ -88,8 +88,12 @@ class MixFFN(nn.Module):
         self.mlp2 = nn.Linear(hidden, channels)
 
     def forward(self, x: torch.Tensor, h: int, w: int) -> torch.Tensor:
-        x = self.depthwise(tokens_to_grid(self.mlp1(x), h, w))
-        return self.mlp2(grid_to_tokens(F.gelu(x)))
+        n, length, _ = x.shape
+        # a channels-last view of the token grid: the convolution reads it in place and writes channels-last,
+        # so neither direction needs a transposed copy of the widest tensor
+        y = self.mlp1(x).reshape(n, h, w, -1).permute(0, 3, 1, 2)
+        y = F.gelu(self.depthwise(y))
+        return self.mlp2(y.permute(0, 2, 3, 1).reshape(n, length, -1))
 
 
 class MixTransformerStage(nn.Module):
