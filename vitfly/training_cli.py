@@ -26,9 +26,12 @@ from vitfly.training import checkpoint_defaults, default_wandb_offline, finish_w
 from vitfly.zoo.policy import PolicyModule, register_policy_classes
 
 SUBCOMMANDS = ("fit", "validate", "test", "predict")
+RUN_ROOT = "runs"  # where runs go when trainer.default_root_dir is not set
+# save_dir "" means "the run directory" (trainer.default_root_dir), filled in before instantiation so
+# that a --trainer.default_root_dir override moves the logs too (YAML interpolation would not)
 DEFAULT_LOGGER = {
     "class_path": "lightning.pytorch.loggers.CSVLogger",
-    "init_args": {"save_dir": "runs", "name": "fit"},
+    "init_args": {"save_dir": "", "name": ""},
 }
 
 
@@ -41,6 +44,15 @@ class VitflyCLI(LightningCLI):
         parser.set_defaults({"trainer.logger": DEFAULT_LOGGER})
         # the datamodule records use_state with the split; the policy's value is the one that counts
         parser.link_arguments("model.init_args.use_state", "data.use_state")
+
+    def before_instantiate_classes(self) -> None:
+        config = self.config[self.subcommand] if self.subcommand else self.config
+        root = config.trainer.default_root_dir or RUN_ROOT
+        loggers = config.trainer.logger
+        for logger in loggers if isinstance(loggers, list) else [loggers]:
+            init_args = getattr(logger, "init_args", None)
+            if init_args is not None and "save_dir" in init_args and not init_args.save_dir:
+                init_args.save_dir = root
 
     def _instantiate_trainer(self, config: dict[str, Any], callbacks: list) -> Any:
         listed = config.get("callbacks") or []

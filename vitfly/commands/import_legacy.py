@@ -30,7 +30,7 @@ def run(args: argparse.Namespace) -> int:
             args.source,
             args.out,
             depth_max_m=args.depth_max_m,
-            warn=lambda msg: bar.console.print(f"vitfly: warning: {msg}", style="yellow"),
+            warn=lambda msg: bar.console.print(f"vitfly: warning: {msg}", style="yellow", markup=False, soft_wrap=True),
             progress=lambda done, total: bar.update(task, completed=done, total=total),
         )
     print(f"{args.out}:")

@@ -176,12 +176,14 @@ def _open_for_reading(path: Path) -> h5py.File:
         raise VitflyError(f"{path}: not an HDF5 file (corrupt or wrong format); expected a vitfly dataset")
     try:
         return h5py.File(path, "r")
-    except OSError as err:
+    except (OSError, RuntimeError) as err:
+        if not _is_crash_flag_error(err) and "lock file" not in str(err):
+            raise VitflyError(f"{path}: cannot open HDF5 file, corrupt or truncated ({err})") from None
         # left open for writing (a live or a killed SWMR writer): SWMR-read still sees every commit
         try:
             return h5py.File(path, "r", swmr=True)
-        except OSError:
-            raise VitflyError(f"{path}: cannot open HDF5 file ({err})") from None
+        except (OSError, RuntimeError) as err2:
+            raise VitflyError(f"{path}: cannot open HDF5 file, corrupt or truncated ({err2})") from None
 
 
 def _check_not_locked(path: Path) -> None:
@@ -306,6 +308,9 @@ class TrajectoryFile:
             if check_values:
                 check_finite(self._file, self.path, int(self.offsets[-1]))
             self.table = {name: self._file[f"trajectories/{name}"][:m] for name in TRAJ_FIELDS}
+        except (OSError, RuntimeError, KeyError) as err:
+            self._file.close()
+            raise VitflyError(f"{self.path}: corrupt HDF5 file, a dataset cannot be read ({err})") from None
         except BaseException:
             self._file.close()
             raise

@@ -10,7 +10,7 @@ name works as the model's class (``model: vit_lstm``), because every registered 
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+from collections.abc import Iterator, Mapping
 from typing import Any
 
 import lightning as L
@@ -24,6 +24,7 @@ from vitfly.zoo.base import DepthPolicyNet
 from vitfly.zoo.layers import state_vector
 from vitfly.zoo.registry import create_model, list_models
 
+CHUNK_KEYS = ("depth", "desired_speed", "quat", "velocity_cmd", "mask")
 MIN_SPEED_MPS = 1e-3  # guards the label division; real trajectories fly at >= 1 m/s
 
 
@@ -162,30 +163,40 @@ class PolicyModule(L.LightningModule):
 
     # -- training: truncated BPTT with manual optimisation -----------------------------------------
 
-    def training_step(self, batch: Mapping[str, torch.Tensor], batch_idx: int) -> torch.Tensor:
-        opt = self.optimizers()
+    def tbptt_chunks(self, batch: Mapping[str, torch.Tensor]) -> Iterator[dict[str, torch.Tensor]]:
+        """The batch cut along time into chunks of ``tbptt_steps`` (``.split(k, dim=1)``), each trimmed
+        of trailing all-padding steps; stops at the first chunk without a valid step."""
         mask = batch["mask"]
         k = self.tbptt_steps or mask.shape[1]
-        keys = ("depth", "desired_speed", "quat", "velocity_cmd", "mask")
-        chunks = zip(*(batch[key].split(k, dim=1) for key in keys), strict=True)
+        pieces = {key: batch[key].split(k, dim=1) for key in CHUNK_KEYS}
+        for i in range(len(pieces["mask"])):
+            valid_steps = pieces["mask"][i].any(dim=0)
+            if not valid_steps.any():  # trajectories are padded at the end: nothing valid follows
+                return
+            steps = int(valid_steps.nonzero().max()) + 1
+            yield {key: pieces[key][i][:, :steps] for key in CHUNK_KEYS}
+
+    def chunk_loss(self, chunk: Mapping[str, torch.Tensor], hidden: Any = None) -> tuple[torch.Tensor, Any]:
+        """Paper eq. 1 on one chunk, starting from recurrent state ``hidden``: (loss, state after the chunk)."""
+        mask, speed = chunk["mask"], chunk["desired_speed"]
+        prediction, hidden = self._forward_valid(chunk["depth"], speed, chunk["quat"], hidden, mask)
+        return masked_mse(prediction, normalised_target(chunk["velocity_cmd"], speed), mask), hidden
+
+    def training_step(self, batch: Mapping[str, torch.Tensor], batch_idx: int) -> torch.Tensor:
+        opt = self.optimizers()
         hidden = None
-        loss_sum = torch.zeros((), device=mask.device)
+        loss_sum = torch.zeros((), device=batch["mask"].device)
         n_valid = 0
-        for depth, speed, quat, cmd, cmask in chunks:
-            steps = int(cmask.any(dim=0).nonzero().max()) + 1 if cmask.any() else 0
-            if steps == 0:  # trajectories are padded at the end: nothing valid follows
-                break
-            depth, speed, quat, cmd, cmask = (x[:, :steps] for x in (depth, speed, quat, cmd, cmask))
-            prediction, hidden = self._forward_valid(depth, speed, quat, hidden, cmask)
-            loss = masked_mse(prediction, normalised_target(cmd, speed), cmask)
+        for chunk in self.tbptt_chunks(batch):
+            loss, hidden = self.chunk_loss(chunk, hidden)
             self._set_lr(opt, batch_idx)
             opt.zero_grad()
             self.manual_backward(loss)
             if self.gradient_clip_val:
                 self.clip_gradients(opt, gradient_clip_val=self.gradient_clip_val, gradient_clip_algorithm="norm")
             opt.step()
-            hidden = detach_hidden(hidden)
-            n = int(cmask.sum())
+            hidden = detach_hidden(hidden)  # carried into the next chunk, cut from this chunk's graph
+            n = int(chunk["mask"].sum())
             loss_sum += loss.detach() * n
             n_valid += n
         mean_loss = loss_sum / max(n_valid, 1)

@@ -1,0 +1,155 @@
+"""`vitfly fit | validate | test | predict` end to end through LightningCLI on a small HDF5 the test writes."""
+
+from __future__ import annotations
+
+import csv
+import json
+from pathlib import Path
+
+import h5py
+import pytest
+import torch
+from test_datamodule import write_dataset
+
+from vitfly.cli import main
+from vitfly.zoo import load_network
+from vitfly.zoo.policy import PolicyModule
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+@pytest.fixture(scope="module")
+def data_path(tmp_path_factory):
+    return write_dataset(tmp_path_factory.mktemp("data") / "d.h5", [12, 9, 15, 7, 11])
+
+
+def fit_args(data_path, run_dir, *extra, model="convnet", epochs=2):
+    return [
+        "fit",
+        "--config", str(REPO / "configs/fit" / f"{model}.yaml"),
+        "--data.data_path", data_path,
+        "--data.num_workers", "0",
+        "--data.batch_size", "2",
+        "--trainer.max_epochs", str(epochs),
+        "--trainer.default_root_dir", str(run_dir),
+        "--trainer.enable_progress_bar", "false",
+        "--trainer.enable_model_summary", "false",
+        *extra,
+    ]  # fmt: skip
+
+
+def run_dir_of(root: Path) -> Path:
+    (version,) = sorted(root.glob("version_*"))
+    return version
+
+
+def test_fit_writes_checkpoints_split_and_metrics_then_resumes(data_path, tmp_path):
+    root = tmp_path / "run"
+    assert main(fit_args(data_path, root, "--model.init_args.tbptt_steps", "4")) == 0
+    run = run_dir_of(root)
+    best, last = run / "checkpoints/best.ckpt", run / "checkpoints/last.ckpt"
+    assert best.exists() and last.exists()
+    ckpt = torch.load(last, weights_only=True)  # contract 2: no pickled objects
+    assert ckpt["hyper_parameters"]["model"] == "convnet" and ckpt["hyper_parameters"]["use_state"] is True
+    assert ckpt["hyper_parameters"]["model_kwargs"] == {}
+    assert ckpt["state_dict"] and all(k.startswith("net.") for k in ckpt["state_dict"])
+    assert ckpt["epoch"] == 1
+    steps = ckpt["global_step"]
+    # 4 training trajectories (one held out), batches of 2, chunks of 4 steps: several optimiser steps per batch
+    assert steps > 2 * 2
+    net = load_network(best)  # the zoo's loader reads fit checkpoints by path alone
+    assert type(net).__name__ == "ConvNet" and not net.training
+    assert PolicyModule.load_from_checkpoint(best).hparams.model == "convnet"
+    split = json.loads((run / "split.json").read_text())
+    assert len(split["val"]) == 1 and len(split["train"]) == 4
+    with open(run / "metrics.csv") as fh:
+        rows = list(csv.DictReader(fh))
+    assert {"train/loss_epoch", "val/loss", "val/cosine"} <= set(rows[0])
+    assert any(r["val/loss"] for r in rows)
+
+    # resume: the step count continues from the checkpoint
+    assert main(fit_args(data_path, tmp_path / "resumed", "--model.init_args.tbptt_steps", "4",
+                         "--ckpt_path", str(last), epochs=3)) == 0  # fmt: skip
+    resumed = torch.load(run_dir_of(tmp_path / "resumed") / "checkpoints/last.ckpt", weights_only=True)
+    assert resumed["epoch"] == 2
+    assert resumed["global_step"] == steps + steps // 2
+
+    # validate / test / predict from the checkpoint
+    for sub in ("validate", "test", "predict"):
+        args = fit_args(data_path, tmp_path / sub, "--ckpt_path", str(best))
+        args[0] = sub
+        assert main(args) == 0, sub
+
+
+def test_model_short_name_use_state_link_and_recurrent_model(data_path, tmp_path):
+    root = tmp_path / "lstm"
+    args = fit_args(data_path, root, "--model", "lstmnet", "--model.init_args.use_state", "false",
+                    "--model.init_args.tbptt_steps", "5", "--trainer.limit_train_batches", "1",
+                    "--trainer.limit_val_batches", "1", epochs=1)  # fmt: skip
+    assert main(args) == 0
+    run = run_dir_of(root)
+    ckpt = torch.load(run / "checkpoints/last.ckpt", weights_only=True)
+    assert ckpt["hyper_parameters"]["model"] == "lstmnet"
+    assert ckpt["hyper_parameters"]["use_state"] is False
+    assert json.loads((run / "split.json").read_text())["use_state"] is False  # linked into the datamodule
+    assert load_network(run / "checkpoints/last.ckpt").use_state is False
+
+
+def test_tensorboard_logger_composes_as_a_second_config(data_path, tmp_path):
+    args = fit_args(data_path, tmp_path / "tb", "--config", str(REPO / "configs/fit/logger/tensorboard.yaml"),
+                    epochs=1)  # fmt: skip
+    assert main(args) == 0
+    assert list((tmp_path / "tb").rglob("events.out.tfevents.*"))
+
+
+def test_wandb_logger_runs_offline(data_path, tmp_path, monkeypatch):
+    monkeypatch.delenv("WANDB_MODE", raising=False)
+    monkeypatch.setenv("WANDB_DIR", str(tmp_path))
+    monkeypatch.setenv("WANDB_SILENT", "true")
+    args = fit_args(data_path, tmp_path / "wb", "--config", str(REPO / "configs/fit/logger/wandb.yaml"),
+                    epochs=1)  # fmt: skip
+    assert main(args) == 0
+    assert list((tmp_path / "wb").rglob("offline-run-*"))
+    import wandb
+
+    assert wandb.run is None  # finished between runs
+
+
+def test_print_config_shows_paper_hyper_parameters(capsys):
+    assert main(["fit", "--config", str(REPO / "configs/fit/vit_lstm.yaml"), "--print_config"]) == 0
+    out = capsys.readouterr().out
+    assert "class_path: vitfly.zoo.policy.vit_lstm" in out
+    assert "lr: 0.0001" in out and "warmup_epochs: 5" in out and "warmup_start_factor: 0.1" in out
+
+
+def test_all_model_configs_parse():
+    for name in ("convnet", "lstmnet", "unet_lstm", "vit", "vit_lstm", "resnet18"):
+        assert main(["fit", "--config", str(REPO / "configs/fit" / f"{name}.yaml"), "--print_config"]) == 0
+
+
+def set_schema_version(path, version):
+    write_dataset(path, [5, 6])
+    with h5py.File(path, "r+") as f:
+        f.attrs["schema_version"] = version
+
+
+@pytest.mark.parametrize(
+    "make, message",
+    [
+        (lambda p: p.write_bytes(b"not an hdf5 file at all" * 10), "not an HDF5 file"),
+        (lambda p: set_schema_version(p, 7), "attribute 'schema_version' is 7"),
+        (lambda p: None, "no such dataset file"),
+    ],
+)
+def test_bad_dataset_fails_with_one_line(tmp_path, capsys, make, message):
+    bad = tmp_path / "bad.h5"
+    make(bad)
+    assert main(fit_args(str(bad), tmp_path / "run", epochs=1)) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err[-1].startswith("vitfly: error: ") and message in err[-1] and str(bad) in err[-1]
+    assert not list(tmp_path.glob("run/version_*/checkpoints/*.ckpt"))
+
+
+def test_unknown_model_name_fails_cleanly(data_path, tmp_path, capsys):
+    assert main(fit_args(data_path, tmp_path / "run", "--model", "no_such_net", epochs=1)) != 0
+    assert "no_such_net" in capsys.readouterr().err
