@@ -57,7 +57,6 @@ def test_success_by_policy_weights_cells_by_trials():
     assert success_by_policy(rows) == {"a": pytest.approx(7 / 8), "b": 0.0}
 
 
-@pytest.mark.slow
 def test_tiny_pipeline_end_to_end_and_resume(tmp_path, capsys):
     out, data = tmp_path / "run", tmp_path / "data" / "d.h5"
     cfg = tmp_path / "tiny.yaml"

@@ -106,9 +106,17 @@ def sweep_config(e: EvalStage, out_dir: str | Path, policy: str, name: str | Non
 
 def stage_collect(collect_config: str | None, overrides: dict, data: str | Path, progress: bool = True) -> dict:
     """Fill ``data`` with expert trajectories up to the configured count (nothing to do if complete)."""
+    from vitfly.datamodules.schema import open_trajectories
     from vitfly.sim.collect import collect, load_collect_config
 
     collect_cfg = load_collect_config(collect_config, overrides)
+    if Path(data).exists():
+        # complete with these settings: only read it (a reader elsewhere in this process blocks writers)
+        with open_trajectories(data, check_values=False) as f:
+            n, frames, stored = len(f), f.num_rows, f.config.get("collect")
+        if n >= collect_cfg.trajectories and stored == json.loads(json.dumps(collect_cfg.content_key())):
+            print(f"[collect] {data}: complete, {n} trajectories (0 new), {frames} frames")
+            return {"trajectories": n, "new": 0, "frames": frames}
     Path(data).parent.mkdir(parents=True, exist_ok=True)
     summary = collect(collect_cfg, data, progress=progress)
     ok = sum(s for s, _ in summary.success_by_speed.values())
