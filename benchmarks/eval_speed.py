@@ -1,11 +1,13 @@
 """Closed-loop evaluation speed: trials per minute and real-time factor (RTF) per core.
 
-Flies ``--trials`` trials per case through ``vitfly.eval.sweep.run_sweep`` (the code behind
+Flies ``--trials`` trials per case through ``vitfly.eval.sweep.fly_batch`` (the code behind
 ``vitfly evaluate``: rendering, physics, the policy, metrics and the trials.jsonl write) in one
-process with one torch / ONNX Runtime thread, i.e. on one core. RTF = simulated flight seconds /
-wall-clock seconds; trials end at the goal or at ``--timeout`` simulated seconds. Learned policies
-are randomly initialised zoo networks (the cost per tick does not depend on the weights) unless a
-checkpoint is given.
+process with one torch / ONNX Runtime thread, i.e. on one core. The policy is built first and not
+timed (loading, and for ONNX Runtime the export and its check against eager, a few seconds once
+per process). RTF = simulated flight seconds / wall-clock seconds; trials end at the goal or at
+``--timeout`` simulated seconds. Learned policies are randomly initialised zoo networks: the cost
+per tick does not depend on the weights, but an untrained network ends its trials early (out of the
+box), so compare RTF, or give trained checkpoints with ``--checkpoint convnet=runs/quickstart/...``.
 
     .venv/bin/python benchmarks/eval_speed.py --trials 16 --num-envs 1 16 --out runs/eval_speed.json
 
@@ -24,8 +26,10 @@ import torch
 from rich.console import Console
 from rich.table import Table
 
+from vitfly.eval import records
 from vitfly.eval.config import SweepConfig
-from vitfly.eval.sweep import run_sweep
+from vitfly.eval.policy_source import PolicySource
+from vitfly.eval.sweep import fly_batch, make_batches, plan_trials
 from vitfly.zoo import create_model, save_checkpoint
 
 CASES = [("expert", "-"), ("convnet", "eager"), ("convnet", "onnxruntime"), ("vit_lstm", "eager"),
@@ -35,6 +39,8 @@ CASES = [("expert", "-"), ("convnet", "eager"), ("convnet", "onnxruntime"), ("vi
 def fly(policy: str, backend: str, num_envs: int, args, workdir: Path) -> dict:
     if policy in ("expert", "straight"):
         spec, label = policy, policy
+    elif policy in args.checkpoint:
+        spec, label = args.checkpoint[policy], policy
     else:
         spec = str(workdir / f"{policy}.ckpt")
         if not Path(spec).exists():
@@ -45,13 +51,17 @@ def fly(policy: str, backend: str, num_envs: int, args, workdir: Path) -> dict:
     cfg = SweepConfig(policy=spec, name=label, env=[args.env], speeds=[args.speed], trials=args.trials,
                       seed=args.seed, out=str(out), num_envs=num_envs, workers=1, threads=1,
                       backend=backend if backend != "-" else "eager", timeout_s=args.timeout, gif=False, plots=False)
+    built = PolicySource(cfg.policy, None, cfg.backend, "cpu", 1).build()
+    out_file = out / records.TRIALS_FILE
     t0 = time.perf_counter()
-    outcome = run_sweep(cfg, progress=False)
+    for batch in make_batches(plan_trials(cfg), num_envs):
+        fly_batch(batch, built, cfg, out_file)
     wall = time.perf_counter() - t0
-    sim_s = sum(float(r.path["time"][-1]) + 1.0 / 30.0 for r in outcome.records)
-    return {"policy": policy, "backend": backend, "num_envs": num_envs, "trials": outcome.flown, "sim_s": sim_s,
-            "wall_s": wall, "trials_per_min": 60.0 * outcome.flown / wall, "rtf_per_core": sim_s / wall,
-            "policy_ms_per_env_tick": sum(r.metrics["processing_ms"] for r in outcome.records) / len(outcome.records)}
+    flown = records.read_records(out_file)
+    sim_s = sum(float(r.path["time"][-1]) + 1.0 / 30.0 for r in flown)
+    return {"policy": policy, "backend": backend, "num_envs": num_envs, "trials": len(flown), "sim_s": sim_s,
+            "wall_s": wall, "trials_per_min": 60.0 * len(flown) / wall, "rtf_per_core": sim_s / wall,
+            "policy_ms_per_env_tick": sum(r.metrics["processing_ms"] for r in flown) / len(flown)}
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -64,8 +74,11 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--speed", type=float, default=5.0, help="desired speed, m/s")
     parser.add_argument("--timeout", type=float, default=6.0, help="simulated seconds per trial at most")
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--checkpoint", nargs="+", default=[], metavar="MODEL=PATH",
+                        help="fly these trained checkpoints instead of random weights")
     parser.add_argument("--out", help="write every measurement as JSON")
     args = parser.parse_args(argv)
+    args.checkpoint = dict(item.split("=", 1) for item in args.checkpoint)
     torch.set_num_threads(1)
 
     results = []
