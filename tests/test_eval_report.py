@@ -133,3 +133,22 @@ def test_standard_plots_are_written(tmp_path):
         assert p.read_bytes()[:4] == b"\x89PNG"
     seed, same_scene = plots.scene_for_paths(recs, "spheres")
     assert seed == 11 and {r.policy for r in same_scene} == {"expert", "convnet", "straight"}
+
+
+def test_wandb_offline_run_holds_table_plots_and_gif(tmp_path, monkeypatch):
+    from PIL import Image
+
+    from vitfly.eval.wandb_log import log_evaluation
+
+    monkeypatch.setenv("WANDB_MODE", "offline")
+    monkeypatch.setenv("WANDB_SILENT", "true")
+    recs = sweep("expert") + sweep("straight")
+    rows = summarize(recs)
+    images = plots.write_standard_plots(tmp_path, rows, recs)
+    gif = tmp_path / "depth.gif"
+    frames = [Image.new("RGB", (90, 60), (i * 40, 0, 0)) for i in range(3)]
+    frames[0].save(gif, save_all=True, append_images=frames[1:], duration=33)
+    run_dir = log_evaluation("vitfly-test", rows, {**images, "depth": gif}, tmp_path, run_name="t")
+    media = {p.parent.name + "/" + p.name.split("_0_")[0] for p in (tmp_path / "wandb").rglob("media/*/*")}
+    assert {"images/rates_vs_speed", "images/energy_vs_speed", "table/summary", "videos/depth"} <= media
+    assert "offline-run" in run_dir

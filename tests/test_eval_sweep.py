@@ -135,3 +135,9 @@ def test_worker_processes_give_the_same_trials(tmp_path):
     b = {r.key: r for r in records.read_sweep(two)}
     assert a.keys() == b.keys() and len(a) == 2
     assert all(a[k].path == b[k].path for k in a)
+
+
+@pytest.mark.parametrize("name", ["spheres", "trees", "window"])
+def test_shipped_eval_configs_load(name):
+    cfg = load_sweep_config(f"configs/eval/{name}.yaml", {"policy": "straight"})
+    assert cfg.env == [name] and cfg.speeds == [3.0, 4.0, 5.0, 6.0, 7.0] and cfg.policy == "straight"
