@@ -153,3 +153,18 @@ def test_bad_dataset_fails_with_one_line(tmp_path, capsys, make, message):
 def test_unknown_model_name_fails_cleanly(data_path, tmp_path, capsys):
     assert main(fit_args(data_path, tmp_path / "run", "--model", "no_such_net", epochs=1)) != 0
     assert "no_such_net" in capsys.readouterr().err
+
+
+def test_train_policy_from_python_writes_and_then_reuses_checkpoints(data_path, tmp_path):
+    from vitfly.training import train_policy
+
+    out = tmp_path / "prog"
+    kwargs = dict(max_epochs=1, batch_size=2, progress_bar=False, policy_kwargs={"tbptt_steps": 8})
+    best = train_policy(data_path, "convnet", out, **kwargs)
+    assert best == out / "checkpoints/best.ckpt" and (out / "checkpoints/last.ckpt").exists()
+    assert (out / "split.json").exists() and (out / "metrics.csv").exists()
+    assert type(load_network(best)).__name__ == "ConvNet"
+    step = torch.load(out / "checkpoints/last.ckpt", weights_only=True)["global_step"]
+    # a second call with the same arguments finds the finished run and trains no further
+    assert train_policy(data_path, "convnet", out, **kwargs) == best
+    assert torch.load(out / "checkpoints/last.ckpt", weights_only=True)["global_step"] == step
