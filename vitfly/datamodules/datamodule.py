@@ -173,12 +173,13 @@ class TrajectoryDataModule(L.LightningDataModule):
 
     def setup(self, stage: str | None = None) -> None:
         if "train" not in self._datasets:
-            full = TrajectoryDataset(self.data_path, max_length=self.max_length, cache_mb=self.cache_mb)
+            with open_trajectories(self.data_path) as tf:  # the one full validation of the file
+                num_trajectories = len(tf)
             if self.split_file:
-                self.train_indices, self.val_indices = self._load_split(full.num_trajectories)
+                self.train_indices, self.val_indices = self._load_split(num_trajectories)
             else:
                 self.train_indices, self.val_indices = split_trajectories(
-                    full.num_trajectories, self.val_fraction, self.split_seed
+                    num_trajectories, self.val_fraction, self.split_seed
                 )
             self._datasets["train"] = self._subset(self.train_indices)
             self._datasets["val"] = self._subset(self.val_indices) if self.val_indices else None
@@ -191,7 +192,9 @@ class TrajectoryDataModule(L.LightningDataModule):
             self._datasets["predict"] = TrajectoryDataset(self.predict_path, max_length=self.max_length)
 
     def _subset(self, indices: list[int]) -> TrajectoryDataset:
-        return TrajectoryDataset(self.data_path, indices, max_length=self.max_length, cache_mb=self.cache_mb)
+        return TrajectoryDataset(
+            self.data_path, indices, max_length=self.max_length, cache_mb=self.cache_mb, check_values=False
+        )
 
     def _loader(self, dataset: TrajectoryDataset, shuffle: bool) -> DataLoader:
         lengths = dataset.window_lengths()

@@ -71,7 +71,8 @@ class TrajectoryDataset(Dataset):
 
     path: the HDF5 file (validated once here). indices: trajectories to use (default all).
     max_length: cut trajectories into windows of at most this many steps. cache_mb: LRU cache size
-    in MiB per process (0 disables it).
+    in MiB per process (0 disables it). check_values: scan the telemetry for NaN on opening (skip it
+    only for a file validated already).
     """
 
     def __init__(
@@ -80,9 +81,11 @@ class TrajectoryDataset(Dataset):
         indices: Sequence[int] | None = None,
         max_length: int | None = None,
         cache_mb: float = 0.0,
+        check_values: bool = True,
     ):
         self.path = os.fspath(path)
-        with open_trajectories(self.path) as tf:  # validates schema, shapes, NaN telemetry
+        # validates schema, shapes and (unless the caller already did) NaN telemetry
+        with open_trajectories(self.path, check_values=check_values) as tf:
             self.lengths = tf.lengths.copy()
             self.num_trajectories = len(tf)
         self.indices = list(range(self.num_trajectories)) if indices is None else [int(i) for i in indices]

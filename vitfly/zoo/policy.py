@@ -94,7 +94,8 @@ class PolicyModule(L.LightningModule):
         use_state: feed desired speed and attitude to the network (False: zeros, paper ablation).
         model_kwargs: extra keyword arguments of the network's builder (plain values).
         lr: Adam learning rate after warm-up (paper: 1e-4).
-        warmup_epochs: epochs of linear warm-up (paper: 5); warmup_start_factor: lr factor at epoch 0 (0.1).
+        warmup_epochs: epochs of linear warm-up (paper: 5).
+        warmup_start_factor: lr factor at the start of the warm-up (paper: 0.1).
         lr_decay: lr factor reached ``max_epochs`` epochs after warm-up, exponentially (1.0: constant, the
             paper's setting; 0.1: the paper code's optional decay). The factor is set before every
             optimiser step from the fractional epoch, so a resumed run continues the same schedule.
