@@ -168,3 +168,13 @@ def test_train_policy_from_python_writes_and_then_reuses_checkpoints(data_path, 
     # a second call with the same arguments finds the finished run and trains no further
     assert train_policy(data_path, "convnet", out, **kwargs) == best
     assert torch.load(out / "checkpoints/last.ckpt", weights_only=True)["global_step"] == step
+
+
+def test_train_policy_refuses_to_resume_another_model(data_path, tmp_path):
+    from vitfly.errors import VitflyError
+    from vitfly.training import train_policy
+
+    out = tmp_path / "prog"
+    train_policy(data_path, "convnet", out, max_epochs=1, batch_size=2, progress_bar=False)
+    with pytest.raises(VitflyError, match="holds a run of model 'convnet' .* not 'lstmnet'"):
+        train_policy(data_path, "lstmnet", out, max_epochs=2, batch_size=2, progress_bar=False)

@@ -96,9 +96,24 @@ def train_policy(
         **{"enable_model_summary": False, **(trainer_kwargs or {})},
     )
     last = ckpt_dir / "last.ckpt"
+    if last.exists():
+        _check_same_run(last, model, use_state)
     trainer.fit(policy, datamodule=data, ckpt_path=str(last) if last.exists() else None, weights_only=True)
     best = checkpoint.best_model_path
     path = Path(best) if best else last
     if not path.exists():
         raise VitflyError(f"{out_dir}: training ended without writing a checkpoint (max_epochs={max_epochs})")
     return path
+
+
+def _check_same_run(last: Path, model: str, use_state: bool) -> None:
+    """Refuse to resume a run of another network (its weights would not load)."""
+    import torch
+
+    hparams = torch.load(last, map_location="cpu", weights_only=True).get("hyper_parameters", {})
+    stored = (hparams.get("model"), hparams.get("use_state"))
+    if stored != (model, use_state):
+        raise VitflyError(
+            f"{last}: holds a run of model {stored[0]!r} (use_state={stored[1]}), not {model!r} "
+            f"(use_state={use_state}); choose another output directory"
+        )
