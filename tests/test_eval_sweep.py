@@ -2,6 +2,8 @@
 
 import csv
 import json
+import os
+from pathlib import Path
 
 import pytest
 import torch
@@ -123,7 +125,7 @@ def test_bad_policy_is_one_line_and_no_output(tmp_path, capsys):
     assert evaluate(out, "--policy", str(tmp_path / "missing.ckpt")) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "missing.ckpt" in err[0] and err[0].startswith("vitfly: error:")
-    assert not (out / "trials.jsonl").exists()
+    assert not out.exists()
 
 
 def test_worker_processes_give_the_same_trials(tmp_path):
@@ -141,3 +143,21 @@ def test_worker_processes_give_the_same_trials(tmp_path):
 def test_shipped_eval_configs_load(name):
     cfg = load_sweep_config(f"configs/eval/{name}.yaml", {"policy": "straight"})
     assert cfg.env == [name] and cfg.speeds == [3.0, 4.0, 5.0, 6.0, 7.0] and cfg.policy == "straight"
+
+
+LEGACY = Path(os.environ.get("VITFLY_LEGACY_FIXTURES",
+                             Path(__file__).resolve().parents[1] / ".." / "shared/fixtures/legacy"))
+
+
+@pytest.mark.skipif(not (LEGACY / "convnet.pth").exists(), reason=f"original checkpoints not found in {LEGACY}")
+def test_original_checkpoint_with_arch(tmp_path, capsys):
+    out = tmp_path / "legacy"
+    assert evaluate(out, "--policy", str(LEGACY / "convnet.pth"), "--arch", "convnet", "--speeds", "3",
+                    "--trials", "1") == 0
+    (rec,) = records.read_sweep(out)
+    assert rec.policy == "convnet" and rec.extra["arch"] == "convnet"
+    capsys.readouterr()
+    assert evaluate(tmp_path / "bad", "--policy", str(LEGACY / "convnet.pth"), "--arch", "vit", "--trials", "1") == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "convnet.pth" in err[0]
+    assert not (tmp_path / "bad").exists()

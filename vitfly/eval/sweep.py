@@ -191,18 +191,23 @@ def run_sweep(cfg: SweepConfig, progress: bool = True) -> SweepOutcome:
     """Fly every pending trial of ``cfg``; return counts and all records now in ``cfg.out``."""
     source = PolicySource(cfg.policy, cfg.arch, cfg.backend, cfg.device, cfg.threads)
     source.check()
+    todo, skipped = pending_trials(cfg)
+    batches = make_batches(todo, cfg.num_envs)
+    policy = None
+    if batches:  # a bad checkpoint fails here, with one line, before anything is written
+        import torch
+
+        torch.set_num_threads(cfg.threads)
+        if cfg.workers <= 1:
+            policy = source.build()
+        elif not source.is_builtin:
+            source.load_network()
     out_dir = Path(cfg.out)
     out_dir.mkdir(parents=True, exist_ok=True)
     out_file = out_dir / records.TRIALS_FILE
-    todo, skipped = pending_trials(cfg)
-    batches = make_batches(todo, cfg.num_envs)
     t0 = time.perf_counter()
     with _progress(progress, len(todo), f"{cfg.label}: {len(todo)} trials ({skipped} done before)") as advance:
-        if batches and cfg.workers <= 1:
-            import torch
-
-            torch.set_num_threads(cfg.threads)
-            policy = source.build()
+        if policy is not None:
             for batch in batches:
                 fly_batch(batch, policy, cfg, out_file, on_trial=lambda _rec: advance(1))
         elif batches:
