@@ -5,8 +5,8 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import tempfile
 
+from vitfly.atomic import write_text
 from vitfly.errors import VitflyError
 
 
@@ -69,13 +69,4 @@ def run(args: argparse.Namespace) -> int:
 
 
 def _write_json(path: str, payload: list[dict]) -> None:
-    fd, tmp = tempfile.mkstemp(prefix=".tmp-", suffix=".json", dir=os.path.dirname(os.path.abspath(path)))
-    try:
-        with os.fdopen(fd, "w") as f:
-            json.dump(payload, f, indent=2)
-            f.write("\n")
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
+    write_text(path, json.dumps(payload, indent=2) + "\n")

@@ -17,6 +17,7 @@ import lightning as L
 import numpy as np
 from torch.utils.data import DataLoader, Sampler
 
+from vitfly.atomic import write_text
 from vitfly.datamodules.dataset import TrajectoryDataset, collate_trajectories
 from vitfly.datamodules.schema import open_trajectories
 from vitfly.errors import VitflyError
@@ -161,12 +162,8 @@ class TrajectoryDataModule(L.LightningDataModule):
 
     def save_split(self, directory: str | os.PathLike) -> Path:
         """Write split.json into ``directory`` atomically; returns its path."""
-        directory = Path(directory)
-        directory.mkdir(parents=True, exist_ok=True)
-        out = directory / SPLIT_FILE
-        tmp = directory / f".{SPLIT_FILE}.tmp-{os.getpid()}"
-        tmp.write_text(json.dumps(self.split_record(), indent=1))
-        os.replace(tmp, out)
+        out = Path(directory) / SPLIT_FILE
+        write_text(out, json.dumps(self.split_record(), indent=1))
         return out
 
     # -- Lightning hooks -----------------------------------------------------------------------

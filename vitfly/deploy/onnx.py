@@ -12,13 +12,13 @@ from __future__ import annotations
 import contextlib
 import io
 import os
-import tempfile
 import warnings
 
 import numpy as np
 import torch
 from torch import nn
 
+from vitfly.atomic import write_bytes
 from vitfly.deploy.optimize import inference_copy
 from vitfly.errors import VitflyError
 from vitfly.zoo.base import IMAGE_HEIGHT, IMAGE_WIDTH
@@ -141,19 +141,7 @@ def export_onnx(
     diff = None
     if check:
         diff = OnnxPolicyRunner(data).check_against(net, atol=atol, batch_size=batch_size or 2)
-    path = os.fspath(path)
-    directory = os.path.dirname(os.path.abspath(path))
-    if not os.path.isdir(directory):
-        raise VitflyError(f"{path}: output directory {directory} does not exist")
-    fd, tmp = tempfile.mkstemp(prefix=".tmp-", suffix=".onnx", dir=directory)
-    try:
-        with os.fdopen(fd, "wb") as f:
-            f.write(data)
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
+    write_bytes(path, data)
     return diff
 
 

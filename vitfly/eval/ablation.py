@@ -16,8 +16,8 @@ import os
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from vitfly.atomic import write_text
 from vitfly.errors import VitflyError
-from vitfly.eval.atomic import write_text
 from vitfly.eval.config import dataclass_from_dict, read_yaml
 from vitfly.eval.paper_tables import ABLATION_ENVS, ABLATION_SPEEDS, MODEL_LABELS, paper_success
 from vitfly.eval.pipeline import EvalStage, TrainStage, stage_collect, stage_evaluate, stage_train

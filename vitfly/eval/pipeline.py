@@ -20,8 +20,8 @@ import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from vitfly.atomic import write_text
 from vitfly.errors import VitflyError
-from vitfly.eval.atomic import write_text
 from vitfly.eval.config import SweepConfig, dataclass_from_dict, read_yaml
 
 

@@ -18,7 +18,7 @@ from pathlib import Path
 import numpy as np
 from matplotlib.figure import Figure
 
-from vitfly.eval.atomic import atomic_path
+from vitfly.atomic import atomic_path
 from vitfly.eval.records import TrialRecord
 from vitfly.sim.visualize import draw_path, draw_scene, format_views
 

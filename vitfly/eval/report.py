@@ -8,8 +8,8 @@ import math
 from collections.abc import Sequence
 from pathlib import Path
 
+from vitfly.atomic import write_text
 from vitfly.eval.aggregate import AGGREGATED_METRICS
-from vitfly.eval.atomic import write_text
 
 BASE_COLUMNS = ("policy", "env", "speed", "trials", "success_rate", "reached_goal_rate", "collision_free_rate")
 

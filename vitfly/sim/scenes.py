@@ -17,12 +17,11 @@ from __future__ import annotations
 import json
 import math
 import os
-import tempfile
 from dataclasses import dataclass, field
-from pathlib import Path
 
 import numpy as np
 
+from vitfly.atomic import write_text
 from vitfly.errors import VitflyError
 
 ENVS = ("spheres", "trees", "window")
@@ -206,16 +205,7 @@ def make_scene(
 
 def save_scene(scene: Scene, path: str | os.PathLike) -> None:
     """Write ``scene`` as JSON atomically (temp file + rename)."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=path.name, suffix=".tmp")
-    try:
-        with os.fdopen(fd, "w") as f:
-            json.dump(scene.to_dict(), f)
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
+    write_text(path, json.dumps(scene.to_dict()))
 
 
 def load_scene(path: str | os.PathLike) -> Scene:

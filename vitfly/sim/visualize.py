@@ -16,7 +16,6 @@ Example::
 from __future__ import annotations
 
 import os
-import tempfile
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -25,6 +24,7 @@ from matplotlib.figure import Figure
 from matplotlib.patches import Circle, Rectangle
 from PIL import Image, ImageDraw
 
+from vitfly.atomic import atomic_path
 from vitfly.sim.quadrotor import quat_wxyz_to_matrix
 from vitfly.sim.rollout import EpisodeResult
 from vitfly.sim.scenes import Scene
@@ -122,14 +122,8 @@ def episode_figure(result: EpisodeResult, n_frames: int = 8, title: str | None =
 def save_figure(fig: Figure, path: str | os.PathLike, dpi: int = 110) -> Path:
     """Write a figure to PNG atomically (temp file + rename)."""
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".png")
-    os.close(fd)
-    try:
+    with atomic_path(path) as tmp:
         fig.savefig(tmp, dpi=dpi, format="png")
-        os.replace(tmp, path)
-    finally:
-        Path(tmp).unlink(missing_ok=True)
     return path
 
 
@@ -177,12 +171,6 @@ def write_gif(result: EpisodeResult, path: str | os.PathLike, stride: int = 1, s
 
 
 def _save_gif(frames: Sequence[Image.Image], path: Path, duration_ms: int) -> Path:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".gif")
-    os.close(fd)
-    try:
+    with atomic_path(path) as tmp:
         frames[0].save(tmp, format="GIF", save_all=True, append_images=list(frames[1:]), duration=duration_ms, loop=0)
-        os.replace(tmp, path)
-    finally:
-        Path(tmp).unlink(missing_ok=True)
     return path

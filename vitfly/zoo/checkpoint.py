@@ -10,12 +10,12 @@ with ``torch.load(..., weights_only=True)``.
 from __future__ import annotations
 
 import os
-import tempfile
 from collections.abc import Mapping
 
 import torch
 from torch import nn
 
+from vitfly.atomic import atomic_path
 from vitfly.errors import VitflyError
 from vitfly.zoo.legacy import check_state_dict, identify_architecture, read_torch_file
 from vitfly.zoo.registry import create_model, list_models
@@ -56,18 +56,8 @@ def save_checkpoint(
         "pytorch-lightning_version": _lightning_version(),
         "vitfly": {"format": CHECKPOINT_FORMAT, "version": CHECKPOINT_VERSION, **dict(metadata or {})},
     }
-    directory = os.path.dirname(os.path.abspath(path))
-    if not os.path.isdir(directory):
-        raise VitflyError(f"{path}: output directory {directory} does not exist")
-    fd, tmp = tempfile.mkstemp(prefix=".tmp-", suffix=".ckpt", dir=directory)
-    try:
-        with os.fdopen(fd, "wb") as f:
-            torch.save(checkpoint, f)
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
+    with atomic_path(path) as tmp:
+        torch.save(checkpoint, tmp)
 
 
 def network_from_checkpoint_dict(checkpoint: Mapping, source: str) -> nn.Module:
