@@ -21,4 +21,5 @@ COPY . .
 RUN python3 -m venv .venv && .venv/bin/pip install -e ".[dev]"
 ENV PATH=/opt/vitfly/.venv/bin:$PATH
 
-CMD ["pytest", "-q"]
+# The main job; `docker run IMAGE pytest -q` runs the tests.
+CMD ["vitfly", "pipeline", "--config", "configs/quickstart.yaml"]
