@@ -128,3 +128,87 @@ def velocity_control(
     rates = attitude_to_rates(state.rotation, r_des, gains)
     torques = rates_to_torques(rates, state.body_rates, airframe.inertia_kgm2, gains)
     return mix(thrust, torques, airframe)
+
+
+def make_velocity_controller(airframe: Airframe, gains: ControllerGains):
+    """:func:`velocity_control` for a fixed airframe and gains, as one fused function.
+
+    Returns ``control(velocity_cmd, state) -> 4 rotor speed commands (rad/s)``, computing exactly
+    what :func:`velocity_control` computes (same operations in the same order, so bit for bit the
+    same result) with the constants looked up once: the rollout engine calls it every physics step.
+    """
+    g = GRAVITY_MPS2
+    vkx, vky, vkz = gains.velocity_p
+    down, up = -gains.max_accel_down_mps2, gains.max_accel_up_mps2
+    tan_tilt = math.tan(gains.max_tilt_rad)
+    mass = airframe.mass_kg
+    c_yaw, s_yaw = math.cos(gains.yaw_rad), math.sin(gains.yaw_rad)
+    akx, aky, akz = gains.attitude_p
+    jx, jy, jz = airframe.inertia_kgm2
+    rkx, rky, rkz = gains.rate_p
+    jkx, jky, jkz = jx * rkx, jy * rky, jz * rkz
+    arm_y, arm_x, kappa = airframe.arm_y_m, airframe.arm_x_m, airframe.torque_coeff
+    f_max, k = airframe.max_rotor_thrust_n, airframe.thrust_coeff
+    sqrt, hypot = math.sqrt, math.hypot
+
+    def control(velocity_cmd: Vec3, state: DroneState) -> tuple[float, float, float, float]:
+        # desired_acceleration (max(x, lo) is "lo if lo > x else x", min(x, hi) "hi if hi < x else x")
+        vel = state.velocity
+        ax = vkx * (velocity_cmd[0] - vel[0])
+        ay = vky * (velocity_cmd[1] - vel[1])
+        az = vkz * (velocity_cmd[2] - vel[2])
+        if down > az:
+            az = down
+        if up < az:
+            az = up
+        max_h = (g + az) * tan_tilt
+        norm_h = hypot(ax, ay)
+        if norm_h > max_h:
+            ax, ay = ax * max_h / norm_h, ay * max_h / norm_h
+        # thrust_and_attitude
+        r0, r1, r2, r3, r4, r5, r6, r7, r8 = state.rotation
+        fx, fy, fz = mass * ax, mass * ay, mass * (az + g)
+        n = sqrt(fx * fx + fy * fy + fz * fz)
+        zx, zy, zz = fx / n, fy / n, fz / n
+        yx, yy, yz = -zz * s_yaw, zz * c_yaw, zx * s_yaw - zy * c_yaw
+        ny = sqrt(yx * yx + yy * yy + yz * yz)
+        yx, yy, yz = yx / ny, yy / ny, yz / ny
+        xx, xy, xz = yy * zz - yz * zy, yz * zx - yx * zz, yx * zy - yy * zx
+        thrust = fx * r2 + fy * r5 + fz * r8
+        if 0.0 > thrust:
+            thrust = 0.0
+        # attitude_to_rates, with r_des = (xx, yx, zx, xy, yy, zy, xz, yz, zz)
+        ex = 0.5 * ((zx * r1 + zy * r4 + zz * r7) - (yx * r2 + yy * r5 + yz * r8))
+        ey = 0.5 * ((xx * r2 + xy * r5 + xz * r8) - (zx * r0 + zy * r3 + zz * r6))
+        ez = 0.5 * ((yx * r0 + yy * r3 + yz * r6) - (xx * r1 + xy * r4 + xz * r7))
+        rx, ry, rz = -akx * ex, -aky * ey, -akz * ez
+        # rates_to_torques
+        wx, wy, wz = state.body_rates
+        tx = jkx * (rx - wx) + (wy * jz * wz - wz * jy * wy)
+        ty = jky * (ry - wy) + (wz * jx * wx - wx * jz * wz)
+        tz = jkz * (rz - wz) + (wx * jy * wy - wy * jx * wx)
+        # mix
+        a, b, c = tx / arm_y, ty / arm_x, tz / kappa
+        f0 = (thrust - a - b + c) / 4
+        f1 = (thrust + a + b + c) / 4
+        f2 = (thrust - a + b - c) / 4
+        f3 = (thrust + a - b - c) / 4
+        if 0.0 > f0:
+            f0 = 0.0
+        if f_max < f0:
+            f0 = f_max
+        if 0.0 > f1:
+            f1 = 0.0
+        if f_max < f1:
+            f1 = f_max
+        if 0.0 > f2:
+            f2 = 0.0
+        if f_max < f2:
+            f2 = f_max
+        if 0.0 > f3:
+            f3 = 0.0
+        if f_max < f3:
+            f3 = f_max
+        return sqrt(f0 / k), sqrt(f1 / k), sqrt(f2 / k), sqrt(f3 / k)
+
+    return control

@@ -200,11 +200,16 @@ class QuadrotorFleet:
     def states(self) -> list[DroneState]:
         """Current state of every drone (see :class:`DroneState`)."""
         cid = self._cid
+        get_pose, get_velocity, to_matrix = (
+            pybullet.getBasePositionAndOrientation,
+            pybullet.getBaseVelocity,
+            pybullet.getMatrixFromQuaternion,
+        )
         out = []
         for body in self._bodies:
-            pos, q = pybullet.getBasePositionAndOrientation(body, physicsClientId=cid)
-            vel, w = pybullet.getBaseVelocity(body, physicsClientId=cid)
-            r = pybullet.getMatrixFromQuaternion(q)
+            pos, q = get_pose(body, physicsClientId=cid)
+            vel, w = get_velocity(body, physicsClientId=cid)
+            r = to_matrix(q)
             # body rates = R^T omega_world
             rates = (
                 r[0] * w[0] + r[3] * w[1] + r[6] * w[2],
@@ -227,11 +232,34 @@ class QuadrotorFleet:
         k, kappa, alpha = af.thrust_coeff, af.torque_coeff, self._motor_alpha
         lo, hi = af.omega_min_radps, af.omega_max_radps
         ax, ay = af.arm_x_m, af.arm_y_m
+        apply_force, apply_torque = pybullet.applyExternalForce, pybullet.applyExternalTorque
+        world = pybullet.WORLD_FRAME
         for body, omega, cmd, st in zip(self._bodies, self._rotor_omega, rotor_omega_cmd, states, strict=True):
-            for j in range(4):
-                c = min(max(float(cmd[j]), lo), hi)
-                omega[j] += alpha * (c - omega[j])  # exact discretisation of the first-order lag
-            f0, f1, f2, f3 = (k * o * o for o in omega)
+            # clip to [lo, hi] (as min(max(c, lo), hi)), then the exact discretisation of the first-order lag
+            c0, c1, c2, c3 = (float(cmd[j]) for j in range(4))
+            o0, o1, o2, o3 = omega
+            if lo > c0:
+                c0 = lo
+            if hi < c0:
+                c0 = hi
+            if lo > c1:
+                c1 = lo
+            if hi < c1:
+                c1 = hi
+            if lo > c2:
+                c2 = lo
+            if hi < c2:
+                c2 = hi
+            if lo > c3:
+                c3 = lo
+            if hi < c3:
+                c3 = hi
+            o0 += alpha * (c0 - o0)
+            o1 += alpha * (c1 - o1)
+            o2 += alpha * (c2 - o2)
+            o3 += alpha * (c3 - o3)
+            omega[0], omega[1], omega[2], omega[3] = o0, o1, o2, o3
+            f0, f1, f2, f3 = k * o0 * o0, k * o1 * o1, k * o2 * o2, k * o3 * o3
             thrust = f0 + f1 + f2 + f3
             tau_x = ay * (-f0 + f1 - f2 + f3)
             tau_y = ax * (-f0 + f1 + f2 - f3)
@@ -243,7 +271,7 @@ class QuadrotorFleet:
                 r[3] * tau_x + r[4] * tau_y + r[5] * tau_z,
                 r[6] * tau_x + r[7] * tau_y + r[8] * tau_z,
             )
-            pybullet.applyExternalForce(body, -1, force, st.position, pybullet.WORLD_FRAME, physicsClientId=cid)
-            pybullet.applyExternalTorque(body, -1, torque, pybullet.WORLD_FRAME, physicsClientId=cid)
+            apply_force(body, -1, force, st.position, world, physicsClientId=cid)
+            apply_torque(body, -1, torque, world, physicsClientId=cid)
         pybullet.stepSimulation(physicsClientId=cid)
         self._time_s += self.dt

@@ -31,7 +31,7 @@ import numpy as np
 
 from vitfly.sim.camera import CameraConfig, DepthCamera
 from vitfly.sim.collision import ContactChecker
-from vitfly.sim.controller import ControllerGains, velocity_control
+from vitfly.sim.controller import ControllerGains, make_velocity_controller
 from vitfly.sim.quadrotor import Airframe, DroneState, QuadrotorFleet
 from vitfly.sim.scenes import Scene
 
@@ -215,6 +215,7 @@ def run_episodes(
     speed_arr = np.array([e.speed for e in envs])
     results: list[EpisodeResult | None] = [None] * n
     hover = (0.0, 0.0, 0.0)
+    control = make_velocity_controller(cfg.airframe, cfg.gains)  # velocity_control, bit for bit
 
     with QuadrotorFleet(n, cfg.airframe, cfg.physics_hz) as fleet:
         fleet.reset(np.tile(np.asarray(task.start, dtype=np.float64), (n, 1)))
@@ -238,9 +239,7 @@ def run_episodes(
             # 3. physics steps with the cascaded controller tracking the commands
             cmd_rows = [tuple(c) if a else hover for c, a in zip(commands.tolist(), active, strict=True)]
             for _ in range(substeps):
-                rotor_cmds = [
-                    velocity_control(c, st, cfg.airframe, cfg.gains) for c, st in zip(cmd_rows, states, strict=True)
-                ]
+                rotor_cmds = [control(c, st) for c, st in zip(cmd_rows, states, strict=True)]
                 fleet.step(rotor_cmds, states)
                 states = fleet.states()
                 time_s += dt
