@@ -86,9 +86,11 @@ def blocked_waypoints(rel_obstacles: np.ndarray, config: ExpertConfig) -> np.nda
     if not keep.any():
         return np.zeros(wpts.shape[:2], dtype=bool)
     centres, radii = rel[keep, :3], radii[keep]
-    along = _unit_directions(config) @ centres.T  # (G*G, K) projection of each centre on each line
-    dist2 = np.sum(centres * centres, axis=1)[None, :] - along * along  # squared distance centre-line
-    blocked = np.any(dist2 <= (radii * radii)[None, :], axis=1)
+    # (G*G, K) projection of each centre on each line (np.dot: the same BLAS product as ``@``, less overhead)
+    along = np.dot(_unit_directions(config), centres.T)
+    along *= along
+    dist2 = np.subtract(np.sum(centres * centres, axis=1), along, out=along)  # squared distance centre-line
+    blocked = (dist2 <= radii * radii).any(axis=1)
     return blocked.reshape(wpts.shape[:2])
 
 
