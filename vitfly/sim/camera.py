@@ -63,6 +63,9 @@ class DepthCamera:
             [[self._tan_h, -1.0, 0.0], [self._tan_h, 1.0, 0.0], [self._tan_v, 0.0, -1.0], [self._tan_v, 0.0, 1.0]]
         )
         self._frustum = planes / np.linalg.norm(planes, axis=1, keepdims=True)
+        # per-bound constants of _pixel_windows: (c0, c1, r0, r1)
+        self._win_tan = np.array([[self._tan_h], [self._tan_h], [self._tan_v], [self._tan_v]])
+        self._win_size = np.array([[cfg.width], [cfg.width], [cfg.height], [cfg.height]], dtype=np.float64)
 
     @property
     def vertical_fov_deg(self) -> float:
@@ -125,16 +128,28 @@ class DepthCamera:
 
     def _pixel_windows(self, u_lo, u_hi, v_lo, v_hi):
         """Row and column ranges [r0, r1) x [c0, c1) whose pixel centres may fall in tangent-space boxes."""
-        cfg = self.config
         # u = tan_h (1 - 2 (col + 0.5) / W)  =>  col = (1 - u / tan_h) W / 2 - 0.5; rows likewise
-        c0 = np.clip(np.floor((1.0 - u_hi / self._tan_h) * cfg.width / 2 - 0.5), 0, cfg.width)
-        c1 = np.clip(np.ceil((1.0 - u_lo / self._tan_h) * cfg.width / 2 - 0.5) + 1, 0, cfg.width)
-        r0 = np.clip(np.floor((1.0 - v_hi / self._tan_v) * cfg.height / 2 - 0.5), 0, cfg.height)
-        r1 = np.clip(np.ceil((1.0 - v_lo / self._tan_v) * cfg.height / 2 - 0.5) + 1, 0, cfg.height)
-        return r0.astype(np.int64), r1.astype(np.int64), c0.astype(np.int64), c1.astype(np.int64)
+        # (the four bounds in one (4, K) array: c0, c1, r0, r1 before rounding)
+        x = np.stack([u_hi, u_lo, v_hi, v_lo])
+        x /= self._win_tan
+        np.subtract(1.0, x, out=x)
+        x *= self._win_size
+        x /= 2
+        x -= 0.5
+        np.floor(x[0::2], out=x[0::2])  # c0, r0
+        np.ceil(x[1::2], out=x[1::2])  # c1, r1
+        x[1::2] += 1
+        np.maximum(x, 0.0, out=x)
+        np.minimum(x, self._win_size, out=x)  # as np.clip(x, 0, size)
+        c0, c1, r0, r1 = x.astype(np.int64)
+        return r0, r1, c0, c1
 
     def _window_pixels(self, r0, r1, c0, c1) -> tuple[np.ndarray, np.ndarray]:
-        """Every (shape index, flat pixel index) pair of the shapes' pixel windows, as two flat arrays."""
+        """Every flat pixel index of the shapes' pixel windows, shape by shape, and how many each shape has.
+
+        Returns ``(counts, pix)``: ``pix`` lists shape 0's window pixels, then shape 1's, ...; shape k
+        has ``counts[k]`` of them (so ``np.repeat(values, counts)`` lines per-shape values up with ``pix``).
+        """
         n_rows = np.maximum(r1 - r0, 0) * (c1 > c0)
         # one entry per (shape, row): where the row's run of pixels starts, and how long it is
         row_sid = np.repeat(np.arange(len(n_rows)), n_rows)
@@ -143,7 +158,8 @@ class DepthCamera:
         start = row * self.config.width + c0[row_sid]
         # expand the runs: pixel = start of its run + position within the run
         offset = np.repeat(start - (np.cumsum(run) - run), run)
-        return np.repeat(row_sid, run), offset + np.arange(len(offset))
+        offset += np.arange(len(offset))
+        return n_rows * (c1 - c0), offset
 
     def _points_window(self, points_cam: np.ndarray) -> tuple[slice, slice]:
         """Pixel window of the convex hull of body-frame points (full image if any is behind)."""
@@ -166,8 +182,12 @@ class DepthCamera:
         keep = (cam[:, 0] - radius < cfg.max_range_m) & np.all(cam @ self._frustum.T > -radius[:, None], axis=1)
         if not keep.any():
             return
-        cx, cy, cz = cam[keep].T
-        r = radius[keep]
+        cam, r = cam[keep], radius[keep]
+        # far to near: a near sphere's hit then usually overwrites a far one's in _scatter_min's first
+        # round (the result does not depend on the order, only the number of rounds does)
+        order = np.argsort(-cam[:, 0], kind="stable")
+        cx, cy, cz = cam[order].T
+        r = r[order]
         r2 = r * r
         # exact image bounds from the tangent planes through the camera (spheres wholly in front);
         # a sphere reaching behind the image plane may cover the whole image
@@ -176,7 +196,7 @@ class DepthCamera:
         hu = r * np.sqrt(np.maximum(cx * cx + cy * cy - r2, 0.0))
         hv = r * np.sqrt(np.maximum(cx * cx + cz * cz - r2, 0.0))
         big = 1e6
-        sid, pix = self._window_pixels(
+        counts, pix = self._window_pixels(
             *self._pixel_windows(
                 np.where(front, (cx * cy - hu) / k, -big),
                 np.where(front, (cx * cy + hu) / k, big),
@@ -187,16 +207,16 @@ class DepthCamera:
         if len(pix) == 0:
             return
         # every (sphere, pixel-in-its-window) pair in one vectorised pass
-        u, v, a = self._u_flat[pix], self._v_flat[pix], self._a_flat[pix]
-        b = cy[sid]
+        u, v, a = self._u_flat.take(pix), self._v_flat.take(pix), self._a_flat.take(pix)
+        b = np.repeat(cy, counts)
         b *= u
-        b += cx[sid]
-        v *= cz[sid]
+        b += np.repeat(cx, counts)
+        v *= np.repeat(cz, counts)
         b += v  # ray . centre: cx + cy u + cz v
         c_sphere = cx * cx + cy * cy + cz * cz - r2  # > 0 when the camera is outside the sphere
-        c = c_sphere[sid]
+        c = np.repeat(c_sphere, counts)
         c *= a
-        disc = b * b
+        disc = np.multiply(b, b, out=u)
         disc -= c  # b^2 - a c
         with np.errstate(invalid="ignore"):
             root = np.sqrt(disc, out=disc)  # NaN where the ray misses
@@ -204,10 +224,11 @@ class DepthCamera:
             if c_sphere.min() > 0:
                 b -= root
             else:
-                b -= np.where(c_sphere[sid] > 0, root, -root)
+                b -= np.where(np.repeat(c_sphere, counts) > 0, root, -root)
             b /= a
-            hit = b > 0  # False for NaN
-        _scatter_min(depth.reshape(-1), pix[hit], b[hit])
+            miss = ~(b > 0)  # also where NaN
+        b[miss] = np.inf  # no hit: leaves the pixel as it is
+        _scatter_min(depth.reshape(-1), pix, b)
 
     def _cast_cylinders(self, depth, cylinders, pos, rot, dirs) -> None:
         # vertical cylinders (side wall + top and bottom caps), solved in the world frame; culled with
@@ -228,7 +249,7 @@ class DepthCamera:
         xc = np.where(front[:, None], cam[:, :, 0], 1.0)
         u, v = cam[:, :, 1] / xc, cam[:, :, 2] / xc
         big = 1e6
-        sid, pix = self._window_pixels(
+        counts, pix = self._window_pixels(
             *self._pixel_windows(
                 np.where(front, u.min(axis=1), -big),
                 np.where(front, u.max(axis=1), big),
@@ -238,6 +259,7 @@ class DepthCamera:
         )
         if len(pix) == 0:
             return
+        sid = np.repeat(np.arange(len(counts)), counts)
         dx, dy, dz = (d.ravel()[pix] for d in dirs)
         ox, oy = pos[0] - cyl[sid, 0], pos[1] - cyl[sid, 1]
         z0, z1, r2 = cyl[sid, 2], cyl[sid, 3], cyl[sid, 4] ** 2
@@ -291,12 +313,16 @@ class DepthCamera:
 def _scatter_min(flat: np.ndarray, index: np.ndarray, values: np.ndarray) -> None:
     """``flat[index] = min(flat[index], values)`` with repeated indices, like ``np.minimum.at``.
 
-    Exact and much faster for a few repeats per index: a fancy assignment stores one of the
+    Exact, and much faster when indices repeat a few times: a fancy assignment stores one of the
     candidates of each repeated index (which one does not matter), then only the candidates still
     below what was stored go round again; each round settles at least one candidate per index.
     """
-    while len(index):
-        current = flat[index]
-        better = values < current
+    current = flat.take(index)
+    np.minimum(current, values, out=current)
+    flat[index] = current
+    while True:
+        better = values < flat.take(index)
+        if not better.any():
+            return
         index, values = index[better], values[better]
         flat[index] = values
