@@ -85,9 +85,12 @@ class DepthCamera:
         cfg = self.config
         pos = np.asarray(position, dtype=np.float64).reshape(3)
         rot = np.asarray(rotation, dtype=np.float64).reshape(3, 3)
-        depth = np.full((cfg.height, cfg.width), np.inf)
+        size = cfg.height * cfg.width
+        # one slot past the image: where the sphere pass sends the pairs that miss
+        buffer = np.full(size + 1, np.inf)
+        depth = buffer[:size].reshape(cfg.height, cfg.width)
         if len(scene.spheres):
-            self._cast_spheres(depth, scene.spheres, pos, rot)
+            self._cast_spheres(buffer, scene.spheres, pos, rot)
         if len(scene.cylinders) or len(scene.boxes):
             # world-frame ray directions, (H, W) per component
             dirs = [rot[i, 0] + rot[i, 1] * self._u + rot[i, 2] * self._v for i in range(3)]
@@ -174,7 +177,8 @@ class DepthCamera:
 
     # -- casting: each writes min(depth, hit) into the depth buffer ------------------------------
 
-    def _cast_spheres(self, depth, spheres, pos, rot) -> None:
+    def _cast_spheres(self, buffer, spheres, pos, rot) -> None:
+        # buffer: the flat depth image plus one spare slot at the end, all +inf (spheres are cast first)
         cfg = self.config
         radius = spheres[:, 3]
         cam = (spheres[:, :3] - pos) @ rot  # world -> body frame (R^T rel, row-wise)
@@ -227,8 +231,10 @@ class DepthCamera:
                 b -= np.where(np.repeat(c_sphere, counts) > 0, root, -root)
             b /= a
             miss = ~(b > 0)  # also where NaN
-        b[miss] = np.inf  # no hit: leaves the pixel as it is
-        _scatter_min(depth.reshape(-1), pix, b)
+        # no hit: +inf into the spare slot (so that it cannot displace a hit on its pixel)
+        np.copyto(b, np.inf, where=miss)
+        np.copyto(pix, len(buffer) - 1, where=miss)
+        _scatter_min(buffer, pix, b, empty=True)
 
     def _cast_cylinders(self, depth, cylinders, pos, rot, dirs) -> None:
         # vertical cylinders (side wall + top and bottom caps), solved in the world frame; culled with
@@ -310,16 +316,20 @@ class DepthCamera:
         np.minimum(depth, t, out=depth)
 
 
-def _scatter_min(flat: np.ndarray, index: np.ndarray, values: np.ndarray) -> None:
+def _scatter_min(flat: np.ndarray, index: np.ndarray, values: np.ndarray, empty: bool = False) -> None:
     """``flat[index] = min(flat[index], values)`` with repeated indices, like ``np.minimum.at``.
 
     Exact, and much faster when indices repeat a few times: a fancy assignment stores one of the
     candidates of each repeated index (which one does not matter), then only the candidates still
     below what was stored go round again; each round settles at least one candidate per index.
+    ``empty``: the caller guarantees ``flat[index]`` is +inf everywhere (saves a read).
     """
-    current = flat.take(index)
-    np.minimum(current, values, out=current)
-    flat[index] = current
+    if empty:
+        flat[index] = values
+    else:
+        current = flat.take(index)
+        np.minimum(current, values, out=current)
+        flat[index] = current
     while True:
         better = values < flat.take(index)
         if not better.any():
