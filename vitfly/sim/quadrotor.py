@@ -231,8 +231,8 @@ class QuadrotorFleet:
         )
         out = []
         for body in self._bodies:
-            pos, q = get_pose(body, physicsClientId=cid)
-            vel, w = get_velocity(body, physicsClientId=cid)
+            pos, q = get_pose(body, cid)
+            vel, w = get_velocity(body, cid)
             r = to_matrix(q)
             # body rates = R^T omega_world
             rates = (
@@ -260,7 +260,8 @@ class QuadrotorFleet:
         world = pybullet.WORLD_FRAME
         for body, omega, cmd, st in zip(self._bodies, self._rotor_omega, rotor_omega_cmd, states, strict=True):
             # clip to [lo, hi] (as min(max(c, lo), hi)), then the exact discretisation of the first-order lag
-            c0, c1, c2, c3 = (float(cmd[j]) for j in range(4))
+            c0, c1, c2, c3 = cmd
+            c0, c1, c2, c3 = float(c0), float(c1), float(c2), float(c3)
             o0, o1, o2, o3 = omega
             if lo > c0:
                 c0 = lo
@@ -295,7 +296,8 @@ class QuadrotorFleet:
                 r[3] * tau_x + r[4] * tau_y + r[5] * tau_z,
                 r[6] * tau_x + r[7] * tau_y + r[8] * tau_z,
             )
-            apply_force(body, -1, force, st.position, world, physicsClientId=cid)
-            apply_torque(body, -1, torque, world, physicsClientId=cid)
-        pybullet.stepSimulation(physicsClientId=cid)
+            # (the client id passed by position: keyword parsing costs more than these calls' work)
+            apply_force(body, -1, force, st.position, world, cid)
+            apply_torque(body, -1, torque, world, cid)
+        pybullet.stepSimulation(cid)
         self._time_s += self.dt

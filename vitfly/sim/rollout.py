@@ -207,7 +207,7 @@ def run_episodes(
         return []
     substeps, dt = cfg.physics_steps_per_tick, 1.0 / cfg.physics_hz
     task = cfg.task
-    lo, hi = np.asarray(task.bounds_min), np.asarray(task.bounds_max)
+    lo, hi = tuple(map(float, task.bounds_min)), tuple(map(float, task.bounds_max))
     camera = DepthCamera(cfg.camera)
     needs_depth = bool(getattr(policy, "needs_depth", True)) or cfg.record_depth
     rngs = [np.random.default_rng([camera_seed if camera_seed is not None else s.seed, 7]) for s in scenes]
