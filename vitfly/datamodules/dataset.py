@@ -155,18 +155,21 @@ def collate_trajectories(items: list[dict]) -> dict[str, torch.Tensor]:
     b = len(items)
     t = max(item["depth"].shape[0] for item in items)
     h, w = items[0]["depth"].shape[1:]
-    depth = torch.zeros((b, t, 1, h, w), dtype=torch.float32)
+    # depth is the bulk of a batch: convert uint8 straight into the output, zero only the padding
+    depth = torch.empty((b, t, 1, h, w), dtype=torch.float32)
     speed = torch.zeros((b, t, 1), dtype=torch.float32)
     quat = torch.zeros((b, t, 4), dtype=torch.float32)
     cmd = torch.zeros((b, t, 3), dtype=torch.float32)
     mask = torch.zeros((b, t), dtype=torch.bool)
     for i, item in enumerate(items):
         n = item["depth"].shape[0]
-        depth[i, :n, 0] = item["depth"].to(torch.float32).mul_(1.0 / 255.0)
+        depth[i, :n, 0].copy_(item["depth"])
+        depth[i, n:].zero_()
         speed[i, :n] = item["desired_speed"]
         quat[i, :n] = item["quat"]
         cmd[i, :n] = item["velocity_cmd"]
         mask[i, :n] = True
+    depth.mul_(1.0 / 255.0)
     return {
         "depth": depth,
         "desired_speed": speed,

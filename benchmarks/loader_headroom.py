@@ -1,0 +1,53 @@
+"""Is data ever the bottleneck? Loader frames/s against the frames/s a ConvNet training step consumes.
+
+Streams a real dataset through ``TrajectoryDataModule`` for a few epochs (the first reads from disk and
+decompresses; later ones hit the LRU cache when it holds the dataset), then times ConvNet optimiser steps
+with ``benchmarks/train_speed.py``'s ``measure`` and prints the ratio per epoch. Target: >= 10x.
+
+    .venv/bin/python benchmarks/loader_headroom.py --data data/quickstart_spheres.h5 [--cache-mb 1024]
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from pathlib import Path
+
+import torch
+
+from vitfly.datamodules.datamodule import TrajectoryDataModule
+
+sys.path.insert(0, str(Path(__file__).parent))
+from train_speed import measure  # noqa: E402
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--data", required=True, help="a vitfly HDF5 dataset (e.g. from vitfly collect)")
+    parser.add_argument("--cache-mb", type=float, default=1024.0)
+    parser.add_argument("--batch-size", type=int, default=4, help="trajectories per batch")
+    parser.add_argument("--epochs", type=int, default=3)
+    parser.add_argument("--threads", type=int, default=torch.get_num_threads())
+    args = parser.parse_args()
+    torch.set_num_threads(args.threads)
+
+    dm = TrajectoryDataModule(data_path=args.data, batch_size=args.batch_size, cache_mb=args.cache_mb, num_workers=0)
+    dm.setup("fit")
+    loader = dm.train_dataloader()
+    rates = []
+    for _ in range(args.epochs):
+        start, frames = time.perf_counter(), 0
+        for batch in loader:
+            frames += int(batch["mask"].sum())
+        rates.append(frames / (time.perf_counter() - start))
+    consumed, _ = measure("convnet", batch=4, steps=64, iters=5, warmup=1)
+
+    print(f"{args.data}: {frames} training frames per epoch, cache {args.cache_mb:.0f} MiB, {args.threads} threads")
+    print(f"ConvNet training step consumes {consumed:,.0f} frames/s (4 trajectories x 64 steps per step)")
+    for epoch, rate in enumerate(rates):
+        print(f"loader epoch {epoch}: {rate:,.0f} frames/s = {rate / consumed:.1f}x")
+
+
+if __name__ == "__main__":
+    main()
