@@ -28,11 +28,14 @@ def main() -> None:
     parser.add_argument("--cache-mb", type=float, default=1024.0)
     parser.add_argument("--batch-size", type=int, default=4, help="trajectories per batch")
     parser.add_argument("--epochs", type=int, default=3)
+    parser.add_argument("--workers", type=int, default=0, help="DataLoader worker processes")
     parser.add_argument("--threads", type=int, default=torch.get_num_threads())
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
 
-    dm = TrajectoryDataModule(data_path=args.data, batch_size=args.batch_size, cache_mb=args.cache_mb, num_workers=0)
+    dm = TrajectoryDataModule(
+        data_path=args.data, batch_size=args.batch_size, cache_mb=args.cache_mb, num_workers=args.workers
+    )
     dm.setup("fit")
     loader = dm.train_dataloader()
     rates = []
@@ -43,7 +46,10 @@ def main() -> None:
         rates.append(frames / (time.perf_counter() - start))
     consumed, _ = measure("convnet", batch=4, steps=64, iters=5, warmup=1)
 
-    print(f"{args.data}: {frames} training frames per epoch, cache {args.cache_mb:.0f} MiB, {args.threads} threads")
+    print(
+        f"{args.data}: {frames} training frames per epoch, cache {args.cache_mb:.0f} MiB, "
+        f"{args.workers} loader workers, {args.threads} threads"
+    )
     print(f"ConvNet training step consumes {consumed:,.0f} frames/s (4 trajectories x 64 steps per step)")
     for epoch, rate in enumerate(rates):
         print(f"loader epoch {epoch}: {rate:,.0f} frames/s = {rate / consumed:.1f}x")
