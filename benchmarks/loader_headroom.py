@@ -1,8 +1,10 @@
 """Is data ever the bottleneck? Loader frames/s against the frames/s a ConvNet training step consumes.
 
-Streams a real dataset through ``TrajectoryDataModule`` for a few epochs (the first reads from disk and
-decompresses; later ones hit the LRU cache when it holds the dataset), then times ConvNet optimiser steps
-with ``benchmarks/train_speed.py``'s ``measure`` and prints the ratio per epoch. Target: >= 10x.
+Streams a real dataset through ``TrajectoryDataModule``'s loader for a few epochs (the first reads from
+disk and decompresses; later ones hit the LRU cache when it holds the dataset). The loader hands depth
+over as uint8; the datamodule's ``on_after_batch_transfer`` makes it float32 on the training device, so
+that conversion is timed on the consumer's side, together with ConvNet optimiser steps
+(``benchmarks/train_speed.py``'s ``measure``). Prints the ratio per epoch. Target: >= 10x.
 
     .venv/bin/python benchmarks/loader_headroom.py --data data/quickstart_spheres.h5 [--cache-mb 1024]
 """
@@ -17,6 +19,7 @@ from pathlib import Path
 import torch
 
 from vitfly.datamodules.datamodule import TrajectoryDataModule
+from vitfly.datamodules.dataset import depth_to_unit_float
 
 sys.path.insert(0, str(Path(__file__).parent))
 from train_speed import measure  # noqa: E402
@@ -44,13 +47,24 @@ def main() -> None:
         for batch in loader:
             frames += int(batch["mask"].sum())
         rates.append(frames / (time.perf_counter() - start))
-    consumed, _ = measure("convnet", batch=4, steps=64, iters=5, warmup=1)
+    convert_s, convert_frames = 0.0, 0
+    for batch in loader:
+        start = time.perf_counter()
+        depth_to_unit_float(batch)
+        convert_s += time.perf_counter() - start
+        convert_frames += batch["depth"].shape[0] * batch["depth"].shape[1]
+    step_rate, _ = measure("convnet", batch=4, steps=64, iters=5, warmup=1)
+    convert_rate = convert_frames / convert_s
+    consumed = 1.0 / (1.0 / step_rate + 1.0 / convert_rate)
 
     print(
         f"{args.data}: {frames} training frames per epoch, cache {args.cache_mb:.0f} MiB, "
         f"{args.workers} loader workers, {args.threads} threads"
     )
-    print(f"ConvNet training step consumes {consumed:,.0f} frames/s (4 trajectories x 64 steps per step)")
+    print(
+        f"ConvNet training step {step_rate:,.0f} frames/s (4 trajectories x 64 steps per step), uint8 -> float32 "
+        f"depth {convert_rate:,.0f} frames/s: the trainer consumes {consumed:,.0f} frames/s"
+    )
     for epoch, rate in enumerate(rates):
         print(f"loader epoch {epoch}: {rate:,.0f} frames/s = {rate / consumed:.1f}x")
 

@@ -194,3 +194,16 @@ def test_bad_files_fail_at_setup_with_one_line(tmp_path):
         TrajectoryDataModule(str(truncated)).setup("fit")
     with pytest.raises(VitflyError, match="no such dataset file"):
         TrajectoryDataModule(str(tmp_path / "missing.h5")).setup("fit")
+
+
+def test_loader_hands_over_uint8_depth_that_the_transfer_hook_makes_the_contract_float(data_path):
+    dm = TrajectoryDataModule(data_path, batch_size=3, val_fraction=0.0, bucket_by_length=False)
+    dm.setup("fit")
+    ds = dm._datasets["train"]
+    for batch in dm.train_dataloader():
+        assert batch["depth"].dtype == torch.uint8
+        expected = collate_trajectories([ds[int(i)] for i in batch["traj_index"]])
+        converted = dm.on_after_batch_transfer(batch, 0)
+        assert converted["depth"].dtype == torch.float32
+        torch.testing.assert_close(converted["depth"], expected["depth"], rtol=0, atol=0)
+        assert float(converted["depth"].max()) <= 1.0

@@ -145,18 +145,27 @@ class TrajectoryDataset(Dataset):
             self._file = None
 
 
-def collate_trajectories(items: list[dict]) -> dict[str, torch.Tensor]:
+def depth_to_unit_float(batch: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
+    """Turn a uint8 ``depth`` (round(255 x normalised depth)) into float32 in [0, 1], in place of the key."""
+    if batch["depth"].dtype == torch.uint8:
+        batch["depth"] = batch["depth"].to(torch.float32).mul_(1.0 / 255.0)
+    return batch
+
+
+def collate_trajectories(items: list[dict], depth_dtype: torch.dtype = torch.float32) -> dict[str, torch.Tensor]:
     """Pad B items to the longest and stack them (the batch contract of DESIGN.md).
 
     depth float32 (B, T, 1, 60, 90) in [0, 1]; desired_speed (B, T, 1); quat (B, T, 4);
     velocity_cmd (B, T, 3); mask bool (B, T), true on real steps; traj_index (B,); start (B,).
     Padding is zeros (and never reaches the loss: the policy masks it out).
+    ``depth_dtype=torch.uint8`` keeps depth as stored (0..255) for ``depth_to_unit_float`` to convert
+    later, on the training device.
     """
     b = len(items)
     t = max(item["depth"].shape[0] for item in items)
     h, w = items[0]["depth"].shape[1:]
     # depth is the bulk of a batch: convert uint8 straight into the output, zero only the padding
-    depth = torch.empty((b, t, 1, h, w), dtype=torch.float32)
+    depth = torch.empty((b, t, 1, h, w), dtype=depth_dtype)
     speed = torch.zeros((b, t, 1), dtype=torch.float32)
     quat = torch.zeros((b, t, 4), dtype=torch.float32)
     cmd = torch.zeros((b, t, 3), dtype=torch.float32)
@@ -169,7 +178,8 @@ def collate_trajectories(items: list[dict]) -> dict[str, torch.Tensor]:
         quat[i, :n] = item["quat"]
         cmd[i, :n] = item["velocity_cmd"]
         mask[i, :n] = True
-    depth.mul_(1.0 / 255.0)
+    if depth_dtype != torch.uint8:
+        depth.mul_(1.0 / 255.0)
     return {
         "depth": depth,
         "desired_speed": speed,
