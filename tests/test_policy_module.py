@@ -44,6 +44,18 @@ if "test_recording_lstm" not in __import__("vitfly.zoo", fromlist=["list_models"
     register_model(lambda use_state=True: RecordingLSTM(use_state), name="test_recording_lstm")
 
 
+def quiet_trainer(root, max_epochs: int) -> L.Trainer:
+    """A Trainer without logger, checkpoints, progress bar or summary."""
+    return L.Trainer(
+        max_epochs=max_epochs,
+        default_root_dir=root,
+        logger=False,
+        enable_checkpointing=False,
+        enable_progress_bar=False,
+        enable_model_summary=False,
+    )
+
+
 @pytest.fixture(scope="module")
 def dataset_path(tmp_path_factory):
     return write_dataset(tmp_path_factory.mktemp("data") / "d.h5", [10, 23, 17, 6])
@@ -102,14 +114,7 @@ def test_recurrent_state_crosses_chunk_boundaries(dataset_path):
 def test_training_step_takes_one_optimiser_step_per_chunk(dataset_path, tmp_path):
     module = create_policy("test_recording_lstm", tbptt_steps=4, warmup_epochs=0)
     data = TrajectoryDataModule(dataset_path, batch_size=4, val_fraction=0.0)
-    trainer = L.Trainer(
-        max_epochs=1,
-        default_root_dir=tmp_path,
-        logger=False,
-        enable_checkpointing=False,
-        enable_progress_bar=False,
-        enable_model_summary=False,
-    )
+    trainer = quiet_trainer(tmp_path, max_epochs=1)
     trainer.fit(module, datamodule=data)
     assert trainer.global_step == 6  # one batch of lengths up to 23 -> ceil(23 / 4) chunks
 
@@ -218,14 +223,7 @@ def test_convnet_overfits_a_tiny_dataset(dataset_path, tmp_path):
         return loss
 
     before = train_set_loss()
-    trainer = L.Trainer(
-        max_epochs=80,
-        default_root_dir=tmp_path,
-        logger=False,
-        enable_checkpointing=False,
-        enable_progress_bar=False,
-        enable_model_summary=False,
-    )
+    trainer = quiet_trainer(tmp_path, max_epochs=80)
     trainer.fit(module, datamodule=data)
     after = train_set_loss()
     assert after < before / 10, (before, after)

@@ -193,6 +193,7 @@ def make_velocity_controller(airframe: Airframe, gains: ControllerGains):
         f1 = (thrust + a + b + c) / 4
         f2 = (thrust - a + b - c) / 4
         f3 = (thrust + a - b - c) / 4
+        # clip each to [0, f_max], unrolled: this runs at the physics rate and builtin min/max calls cost more
         if 0.0 > f0:
             f0 = 0.0
         if f_max < f0:
