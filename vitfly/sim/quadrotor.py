@@ -259,7 +259,8 @@ class QuadrotorFleet:
         apply_force, apply_torque = pybullet.applyExternalForce, pybullet.applyExternalTorque
         world = pybullet.WORLD_FRAME
         for body, omega, cmd, st in zip(self._bodies, self._rotor_omega, rotor_omega_cmd, states, strict=True):
-            # clip to [lo, hi] (as min(max(c, lo), hi)), then the exact discretisation of the first-order lag
+            # clip to [lo, hi] (as min(max(c, lo), hi)), unrolled because this runs at the physics rate and
+            # builtin min/max calls cost more; then the exact discretisation of the first-order lag
             c0, c1, c2, c3 = cmd
             c0, c1, c2, c3 = float(c0), float(c1), float(c2), float(c3)
             o0, o1, o2, o3 = omega
