@@ -4,11 +4,13 @@ Measures, on synthetic depth trajectories with the look of the simulator's (smoo
 background, so compression behaves as on real data):
 
 1. time to first batch and steady samples (frames) per second through the training DataLoader from
-   the HDF5 file, against the original way of reading PNG folders with PIL one image at a time
-   (both as the original code did it, preloading every folder before the first step, and streamed);
+   the HDF5 file (depth stored uncompressed, the default, and gzip-compressed), against the original
+   way of reading PNG folders with PIL one image at a time (both as the original code did it,
+   preloading every folder before the first step, and streamed);
 2. peak resident memory (RSS) while streaming one epoch of a dataset larger than the cache.
 
     .venv/bin/python benchmarks/data_loading.py [--trajectories 40 --steps 300 --big-trajectories 240 --workers 0 2]
+        [--depth-compression none gzip]
 
 Numbers depend on the machine and on what else runs; the README quotes one run and the command.
 """
@@ -155,7 +157,7 @@ def streaming(work: Path, args: argparse.Namespace) -> None:
     """Stream one epoch of a dataset larger than the cache; print resident memory before and at peak."""
     big = work / "big.h5"
     if not big.exists():
-        with TrajectoryWriter(big, {"benchmark": True}) as writer:
+        with TrajectoryWriter(big, {"benchmark": True}, depth_compression=args.depth_compression[0]) as writer:
             record = source_records(args)
             for k in track(range(args.big_trajectories), description="writing the streaming dataset"):
                 rec = record(k)
@@ -174,7 +176,8 @@ def streaming(work: Path, args: argparse.Namespace) -> None:
     raw_mb = n * 60 * 90 / 2**20
     print(
         f"\nstreaming {args.big_trajectories} trajectories = {n} frames ({raw_mb:.0f} MiB as uint8, "
-        f"{4 * raw_mb:.0f} MiB as float32; file {file_mb:.0f} MiB) with a {args.cache_mb:.0f} MiB cache:"
+        f"{4 * raw_mb:.0f} MiB as float32; file {file_mb:.0f} MiB, depth {args.depth_compression[0]}) "
+        f"with a {args.cache_mb:.0f} MiB cache:"
     )
     print(f"RSS {before:.0f} MiB after start-up, peak {peak:.0f} MiB while streaming (+{peak - before:.0f} MiB); "
           f"{n / secs:,.0f} frames/s")  # fmt: skip
@@ -191,6 +194,8 @@ def main() -> None:
     parser.add_argument("--keep", type=Path, default=None, help="keep the generated data in this folder")
     parser.add_argument("--data", type=Path, default=None, help="take trajectories from this dataset (cycled)")
     parser.add_argument("--streaming-only", action="store_true", help="only the resident-memory measurement")
+    parser.add_argument("--depth-compression", nargs="+", choices=("none", "gzip"), default=["none", "gzip"],
+                        help="HDF5 depth storages to compare; the first is used for the memory test")  # fmt: skip
     args = parser.parse_args()
     torch.set_num_threads(1)
     if args.streaming_only:
@@ -200,32 +205,37 @@ def main() -> None:
     work = args.keep or Path(tempfile.mkdtemp(prefix="vitfly-bench-"))
     work.mkdir(parents=True, exist_ok=True)
     try:
-        h5_path, png_root = work / "small.h5", work / "png"
-        if not h5_path.exists():
-            with TrajectoryWriter(h5_path, {"benchmark": True}) as writer:
-                record = source_records(args)
-                for seed in track(range(args.trajectories), description="writing HDF5 + PNG folders"):
-                    rec = record(seed)
-                    rec.seed = seed
+        h5_paths = {c: work / f"small-{c}.h5" for c in args.depth_compression}
+        png_root = work / "png"
+        if not png_root.exists():
+            writers = [TrajectoryWriter(p, {"benchmark": True}, depth_compression=c) for c, p in h5_paths.items()]
+            record = source_records(args)
+            for seed in track(range(args.trajectories), description="writing HDF5 + PNG folders"):
+                rec = record(seed)
+                rec.seed = seed
+                for writer in writers:
                     writer.append(rec)
-                    write_png_folder(png_root, TrajectoryRecord(**{**rec.__dict__, "depth": rec.row_arrays()["depth"]}),
-                                     seed)  # fmt: skip
-        with open_trajectories(h5_path) as tf:
+                write_png_folder(png_root, TrajectoryRecord(**{**rec.__dict__, "depth": rec.row_arrays()["depth"]}),
+                                 seed)  # fmt: skip
+            for writer in writers:
+                writer.close()
+        with open_trajectories(next(iter(h5_paths.values()))) as tf:
             frames = tf.num_rows
-        h5_mb = h5_path.stat().st_size / 2**20
+        sizes = ", ".join(f"HDF5 depth {c} {p.stat().st_size / 2**20:.1f} MiB" for c, p in h5_paths.items())
         png_mb = sum(p.stat().st_size for p in png_root.rglob("*")) / 2**20
-        print(f"\ndataset: {args.trajectories} trajectories, {frames} frames; "
-              f"HDF5 {h5_mb:.1f} MiB, PNG folders {png_mb:.1f} MiB")  # fmt: skip
+        print(f"\ndataset: {args.trajectories} trajectories, {frames} frames; {sizes}, PNG folders {png_mb:.1f} MiB")
         print("\n| source | workers | time to first batch (s) | steady frames/s |")
         print("|---|---|---|---|")
-        for workers in args.workers:
-            dm = TrajectoryDataModule(str(h5_path), batch_size=args.batch_size, val_fraction=0.0, num_workers=workers,
-                                      cache_mb=0)  # fmt: skip
-            start = time.perf_counter()
-            dm.setup("fit")  # opens and validates the file (NaN scan included)
-            setup_s = time.perf_counter() - start
-            first, rate, _ = time_loader(dm.train_dataloader())
-            print(f"| HDF5 (vitfly, streamed) | {workers} | {setup_s + first:.2f} | {rate:,.0f} |")
+        for compression, h5_path in h5_paths.items():
+            for workers in args.workers:
+                dm = TrajectoryDataModule(str(h5_path), batch_size=args.batch_size, val_fraction=0.0,
+                                          num_workers=workers, cache_mb=0)  # fmt: skip
+                start = time.perf_counter()
+                dm.setup("fit")  # opens and validates the file (NaN scan included)
+                setup_s = time.perf_counter() - start
+                first, rate, _ = time_loader(dm.train_dataloader())
+                source = f"HDF5 (vitfly, streamed), depth {compression}"
+                print(f"| {source} | {workers} | {setup_s + first:.2f} | {rate:,.0f} |")
         for workers in args.workers:
             loader = torch.utils.data.DataLoader(PngFolders(png_root), batch_size=args.batch_size, shuffle=True,
                                                  num_workers=workers, collate_fn=collate_trajectories)  # fmt: skip
@@ -242,7 +252,8 @@ def main() -> None:
         # memory in a fresh process, so the numbers above (and their garbage) do not count
         cmd = [sys.executable, __file__, "--streaming-only", "--big-trajectories", str(args.big_trajectories),
                "--steps", str(args.steps), "--cache-mb", str(args.cache_mb), "--batch-size", str(args.batch_size),
-               "--keep", str(work)] + (["--data", str(args.data)] if args.data else [])  # fmt: skip
+               "--keep", str(work), "--depth-compression", *args.depth_compression]
+        cmd += ["--data", str(args.data)] if args.data else []
         subprocess.run(cmd, check=True)
     finally:
         if args.keep is None:

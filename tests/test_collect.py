@@ -86,11 +86,13 @@ def test_collect_writes_the_schema(reference, capsys):
         assert float(f.attrs["depth_max_m"]) == 10.0
 
 
-def test_output_is_the_same_whatever_the_workers(reference, tiny_config, tmp_path, capsys):
+def test_output_is_the_same_whatever_the_workers_and_storage(reference, tiny_config, tmp_path, capsys):
     out = tmp_path / "w2.h5"
     args = ["collect", "--config", str(tiny_config), "--out", str(out), "--trajectories", "4", "--workers", "2"]
-    assert main([*args, "--no-progress"]) == 0
+    assert main([*args, "--depth-compression", "gzip", "--no-progress"]) == 0
     assert_same_data(reference, out)
+    with h5py.File(reference, "r") as ref, h5py.File(out, "r") as gz:
+        assert (ref["depth"].compression, gz["depth"].compression) == (None, "gzip")
     printed = capsys.readouterr().out
     assert "4 trajectories" in printed and "expert success" in printed
 
@@ -164,6 +166,10 @@ def test_unknown_config_key_is_one_line_error_and_no_output(tmp_path, capsys):
     assert "camera.max_range" in capsys.readouterr().err
     assert main(["collect", "--config", str(tiny_config_path(tmp_path)), "--out", str(out), "--speeds", "5", "2"]) == 2
     assert "speeds" in capsys.readouterr().err
+    cfg.write_text(TINY + "depth_compression: lz4\n")
+    assert main(["collect", "--config", str(cfg), "--out", str(out)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "depth_compression is 'lz4'" in err and str(cfg) in err
     assert not out.exists()
 
 

@@ -60,14 +60,16 @@ def test_depth_encoding_rounds_to_nearest_level():
     assert np.abs(decode_depth(enc)[:4] - np.clip(depth[:4], 0, 1)).max() <= 0.5 / 255 + 1e-7
 
 
-def test_round_trip_and_resume(tmp_path):
+@pytest.mark.parametrize(("storage", "chunk_frames"), [("none", 64), ("gzip", 1)])
+def test_round_trip_and_resume(tmp_path, storage, chunk_frames):
     path = tmp_path / "d.h5"
     records = [make_record(s) for s in range(5)]
-    with TrajectoryWriter(path, {"env": "spheres", "n": 5}, depth_max_m=10.0) as w:
+    with TrajectoryWriter(path, {"env": "spheres", "n": 5}, depth_max_m=10.0, depth_compression=storage) as w:
         for rec in records[:3]:
             w.append(rec)
         assert w.num_trajectories == 3
-    with TrajectoryWriter(path, {"ignored": True}) as w:  # reopen to append
+    other = "gzip" if storage == "none" else "none"
+    with TrajectoryWriter(path, {"ignored": True}, depth_compression=other) as w:  # reopen to append: layout kept
         assert w.seeds() == [0, 1, 2]
         for rec in records[3:]:
             w.append(rec)
@@ -81,8 +83,14 @@ def test_round_trip_and_resume(tmp_path):
         part = tf.read(2, ("velocity_cmd",), start=1, stop=3)
         np.testing.assert_allclose(part["velocity_cmd"], records[2].velocity_cmd[1:3].astype(np.float32))
     with h5py.File(path, "r") as f:
-        assert f["depth"].compression == "gzip"
-        assert f["depth"].chunks == (1, 60, 90)
+        assert f["depth"].compression == (None if storage == "none" else "gzip")
+        assert f["depth"].chunks == (chunk_frames, 60, 90)
+
+
+def test_unknown_depth_compression_is_one_line(tmp_path):
+    with pytest.raises(VitflyError, match="depth_compression is 'lz4'; expected one of none, gzip"):
+        TrajectoryWriter(tmp_path / "d.h5", {}, depth_compression="lz4")
+    assert not (tmp_path / "d.h5").exists()
 
 
 def test_float_depth_is_encoded_and_scalar_speed_broadcast(tmp_path):
@@ -118,7 +126,7 @@ WRITER_SCRIPT = textwrap.dedent(
     sys.path.insert(0, {tests!r})
     from test_schema import make_record
     from vitfly.datamodules.schema import TrajectoryWriter
-    with TrajectoryWriter({path!r}, {{"kill": "test"}}) as w:
+    with TrajectoryWriter({path!r}, {{"kill": "test"}}, depth_compression={storage!r}) as w:
         seed = w.num_trajectories
         while True:
             w.append(make_record(seed, length=30 + seed % 7))
@@ -128,9 +136,9 @@ WRITER_SCRIPT = textwrap.dedent(
 )
 
 
-def _run_and_kill(path, min_commits: int, extra_delay: float) -> int:
+def _run_and_kill(path, min_commits: int, extra_delay: float, storage: str) -> int:
     """Start a real writer process, SIGKILL it mid-run; return how many appends it reported."""
-    script = WRITER_SCRIPT.format(tests=os.path.dirname(__file__), path=str(path))
+    script = WRITER_SCRIPT.format(tests=os.path.dirname(__file__), path=str(path), storage=storage)
     proc = subprocess.Popen([sys.executable, "-c", script], stdout=subprocess.PIPE, text=True)
     reported = 0
     try:
@@ -147,12 +155,14 @@ def _run_and_kill(path, min_commits: int, extra_delay: float) -> int:
     return reported
 
 
-def test_sigkill_mid_write_keeps_exactly_the_committed_trajectories(tmp_path):
+# "none" shares 64-frame depth chunks between trajectories; "gzip" has one compressed chunk per frame
+@pytest.mark.parametrize("storage", ["none", "gzip"])
+def test_sigkill_mid_write_keeps_exactly_the_committed_trajectories(tmp_path, storage):
     path = tmp_path / "killed.h5"
     rng = np.random.default_rng(0)
     total_reported = 0
     for round_ in range(4):
-        reported = _run_and_kill(path, min_commits=2, extra_delay=float(rng.uniform(0.0, 0.05)))
+        reported = _run_and_kill(path, min_commits=2, extra_delay=float(rng.uniform(0.0, 0.05)), storage=storage)
         total_reported += reported
         with open_trajectories(path) as tf:  # opens a crashed file without any repair step
             committed = len(tf)
@@ -168,8 +178,9 @@ def test_sigkill_mid_write_keeps_exactly_the_committed_trajectories(tmp_path):
     with open_trajectories(path) as tf:
         assert len(tf) == committed + 1
         assert_same(tf[committed], make_record(committed, length=30 + committed % 7))
-        with h5py.File(path, "r") as f:  # the rebuilt file opens normally again
+        with h5py.File(path, "r") as f:  # the rebuilt file opens normally again, with the same storage
             assert f["depth"].shape[0] == tf.num_rows
+            assert f["depth"].compression == (None if storage == "none" else "gzip")
 
 
 # ---- validation: one line naming file and field -------------------------------------------------

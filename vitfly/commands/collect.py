@@ -40,11 +40,19 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         default=keep,
         help=f"worker processes; the output does not depend on it (YAML, else {_DEFAULTS.workers})",
     )
+    parser.add_argument(
+        "--depth-compression",
+        choices=("none", "gzip"),
+        default=keep,
+        help="depth storage of a new file: none streams ~10x faster in training, gzip is ~2.8x smaller "
+        f"(YAML, else {_DEFAULTS.depth_compression})",
+    )
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
 
 
 def run(args: argparse.Namespace) -> int:
-    overrides = {name: getattr(args, name, None) for name in ("trajectories", "speeds", "seed", "workers")}
+    flags = ("trajectories", "speeds", "seed", "workers", "depth_compression")
+    overrides = {name: getattr(args, name, None) for name in flags}
     config = load_collect_config(getattr(args, "config", None), overrides)
     summary = collect(config, args.out, progress=not args.no_progress)
     total_ok = sum(s for s, _ in summary.success_by_speed.values())

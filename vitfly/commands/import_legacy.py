@@ -20,6 +20,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         default=DEFAULT_DEPTH_MAX_M,
         help="metric depth (m) that PNG value 255 stands for, stored with the dataset",
     )
+    parser.add_argument(
+        "--depth-compression",
+        choices=("none", "gzip"),
+        default="none",
+        help="depth storage: none streams ~10x faster in training, gzip is ~2.8x smaller (default: none)",
+    )
 
 
 def run(args: argparse.Namespace) -> int:
@@ -30,6 +36,7 @@ def run(args: argparse.Namespace) -> int:
             args.source,
             args.out,
             depth_max_m=args.depth_max_m,
+            depth_compression=args.depth_compression,
             warn=lambda msg: bar.console.print(f"vitfly: warning: {msg}", style="yellow", markup=False, soft_wrap=True),
             progress=lambda done, total: bar.update(task, completed=done, total=total),
         )

@@ -184,6 +184,7 @@ def import_legacy(
     source: str | os.PathLike,
     out: str | os.PathLike,
     depth_max_m: float = DEFAULT_DEPTH_MAX_M,
+    depth_compression: str = "none",
     warn: Callable[[str], None] | None = None,
     progress: Callable[[int, int], None] | None = None,
 ) -> ImportSummary:
@@ -191,7 +192,8 @@ def import_legacy(
 
     Trajectory m's seed is its folder's position in name order, so a rerun skips folders already
     imported. ``warn(message)`` is called for each skipped folder; ``progress(done, total)`` after
-    each folder. Raises VitflyError if nothing at all could be imported (no file is left behind).
+    each folder. ``depth_compression``: "none" or "gzip" (``TrajectoryWriter``). Raises VitflyError
+    if nothing at all could be imported (no file is left behind).
     """
     source, out = Path(source), Path(out)
     folders = trajectory_folders(source)
@@ -200,7 +202,7 @@ def import_legacy(
     created = not out.exists()
     config = {"source": "legacy", "source_dir": str(source.resolve()), "folders": names}
     try:
-        with TrajectoryWriter(out, config, depth_max_m=depth_max_m) as writer:
+        with TrajectoryWriter(out, config, depth_max_m=depth_max_m, depth_compression=depth_compression) as writer:
             if writer.config.get("folders", names) != names:
                 raise VitflyError(
                     f"{out}: holds an import of another folder list (config 'folders'); choose another --out"

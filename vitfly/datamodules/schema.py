@@ -4,7 +4,7 @@ This module is the single owner of the on-disk format (DESIGN.md "Datasets")::
 
     / attrs: schema="vitfly.trajectories", schema_version=1, image_shape=[60, 90],
              depth_max_m=10.0, vitfly_version, config (JSON of how it was made)
-    /depth          uint8   (N, 60, 90)  round(255 * normalised depth); one compressed chunk per frame
+    /depth          uint8   (N, 60, 90)  round(255 * normalised depth); chunked, see DEPTH_STORAGE
     /desired_speed  float32 (N,)         m/s
     /quat           float32 (N, 4)       attitude, body to world, (w, x, y, z)
     /position       float32 (N, 3)       m, world frame
@@ -20,9 +20,10 @@ trajectories whose ``append`` returned): the file is written in HDF5 SWMR mode, 
 metadata flushes keep the on-disk file consistent at every instant. ``append`` writes the rows and
 the per-trajectory table first, flushes, and only then extends ``/traj_offsets`` and flushes again:
 ``/traj_offsets`` is the commit record, and rows beyond ``off[-1]`` are ignored by readers and
-dropped when a writer reopens the file. Depth chunks hold one frame each and telemetry is stored
-uncompressed, so no compressed chunk of a committed trajectory is ever rewritten (a rewritten
-compressed chunk moves, and its old space could be reused before the index points elsewhere).
+dropped when a writer reopens the file. No compressed chunk of a committed trajectory is ever
+rewritten (a rewritten compressed chunk moves, and its old space could be reused before the index
+points elsewhere): telemetry and, by default, depth are stored uncompressed, whose chunks are
+rewritten in place, and gzip-compressed depth (``depth_compression="gzip"``) has one frame per chunk.
 After a crash HDF5 refuses a plain open ("file is already open for write"); readers then open in
 SWMR-read mode, and a writer rebuilds the committed part into a fresh file and renames it over the
 old one (the old file stays untouched until the rename).
@@ -72,7 +73,26 @@ TRAJ_FIELDS: dict[str, np.dtype] = {
 }
 FLOAT_ROW_FIELDS = tuple(k for k, (dt, _) in ROW_FIELDS.items() if dt.kind == "f")
 TELEMETRY_CHUNK_ROWS = 4096
-DEPTH_COMPRESSION = {"compression": "gzip", "compression_opts": 4, "shuffle": False}
+DEPTH_CHUNK_FRAMES = 64
+# How /depth is stored (the reader handles both). "none" streams about 10x faster than "gzip" (gzip
+# inflation bounds a reader at ~40k frames/s per core) for about 2.8x the file size.
+DEPTH_STORAGE: dict[str, dict[str, Any]] = {
+    # uncompressed chunks are rewritten in place, so an append may share a chunk with committed rows
+    "none": {"chunks": (DEPTH_CHUNK_FRAMES, *IMAGE_SHAPE)},
+    # a rewritten compressed chunk moves: one frame per chunk keeps committed chunks untouched
+    "gzip": {"chunks": (1, *IMAGE_SHAPE), "compression": "gzip", "compression_opts": 4, "shuffle": False},
+}
+
+
+def depth_storage_of(f: h5py.File) -> str:
+    """The DEPTH_STORAGE key an existing file's /depth was written with."""
+    return "gzip" if f["depth"].compression == "gzip" else "none"
+
+
+def check_depth_compression(value: str, source: str = "depth_compression") -> None:
+    """Raise VitflyError unless ``value`` is a DEPTH_STORAGE key."""
+    if value not in DEPTH_STORAGE:
+        raise VitflyError(f"{source} is {value!r}; expected one of {', '.join(DEPTH_STORAGE)}")
 
 
 def encode_depth(depth: np.ndarray) -> np.ndarray:
@@ -375,7 +395,7 @@ def open_trajectories(path: str | os.PathLike, *, check_values: bool = True) -> 
 # writer
 
 
-def _create_layout(f: h5py.File, config: dict, depth_max_m: float) -> None:
+def _create_layout(f: h5py.File, config: dict, depth_max_m: float, depth_compression: str = "none") -> None:
     f.attrs["schema"] = SCHEMA_NAME
     f.attrs["schema_version"] = SCHEMA_VERSION
     f.attrs["image_shape"] = np.asarray(IMAGE_SHAPE, dtype=np.int64)
@@ -384,9 +404,7 @@ def _create_layout(f: h5py.File, config: dict, depth_max_m: float) -> None:
     f.attrs["config"] = json.dumps(config, sort_keys=True, default=str)
     for name, (dtype, tail) in ROW_FIELDS.items():
         if name == "depth":
-            f.create_dataset(
-                name, (0, *tail), maxshape=(None, *tail), dtype=dtype, chunks=(1, *tail), **DEPTH_COMPRESSION
-            )
+            f.create_dataset(name, (0, *tail), maxshape=(None, *tail), dtype=dtype, **DEPTH_STORAGE[depth_compression])
         else:
             f.create_dataset(
                 name, (0, *tail), maxshape=(None, *tail), dtype=dtype, chunks=(TELEMETRY_CHUNK_ROWS, *tail)
@@ -398,26 +416,30 @@ def _create_layout(f: h5py.File, config: dict, depth_max_m: float) -> None:
 
 
 def _rebuild_committed(src_path: Path, dst_path: Path) -> None:
-    """Copy the committed trajectories of a crashed file into a fresh file (depth chunks copied raw)."""
+    """Copy the committed trajectories of a crashed file into a fresh file with the same depth storage."""
     with h5py.File(src_path, "r", swmr=True) as src:
         validate_file(src, src_path, allow_empty=True)
         off = src["traj_offsets"][...]
         m, n = len(off) - 1, int(off[-1])
         config = json.loads(_attr_str(src.attrs.get("config", "{}")) or "{}")
         with h5py.File(dst_path, "w", libver="latest") as dst:
-            _create_layout(dst, config, float(src.attrs["depth_max_m"]))
+            storage = depth_storage_of(src)
+            _create_layout(dst, config, float(src.attrs["depth_max_m"]), storage)
             for key in ("schema", "vitfly_version"):
                 dst.attrs[key] = src.attrs[key]
             for name in ROW_FIELDS:
                 dst[name].resize(n, axis=0)
-            src_depth, dst_depth = src["depth"].id, dst["depth"].id
-            for i in range(n):
-                mask, chunk = src_depth.read_direct_chunk((i, 0, 0))
-                dst_depth.write_direct_chunk((i, 0, 0), chunk, mask)
+            copied = set()
+            if storage == "gzip":  # one frame per chunk: copy the compressed bytes, no re-compression
+                src_depth, dst_depth = src["depth"].id, dst["depth"].id
+                for i in range(n):
+                    mask, chunk = src_depth.read_direct_chunk((i, 0, 0))
+                    dst_depth.write_direct_chunk((i, 0, 0), chunk, mask)
+                copied.add("depth")
             for name in ROW_FIELDS:
-                if name != "depth":
-                    for start in range(0, n, 1 << 20):
-                        stop = min(start + (1 << 20), n)
+                if name not in copied:
+                    for start in range(0, n, 1 << 14):
+                        stop = min(start + (1 << 14), n)
                         dst[name][start:stop] = src[name][start:stop]
             for name in TRAJ_FIELDS:
                 key = f"trajectories/{name}"
@@ -433,12 +455,20 @@ class TrajectoryWriter:
     ``append(rec)`` is atomic with respect to SIGKILL: after a crash, reopening gives a readable
     file holding exactly the trajectories whose ``append`` returned. ``config`` (a JSON-able dict
     of how the data was made) is stored on creation; on reopen the stored one is kept, and
-    ``depth_max_m`` must match the file's.
+    ``depth_max_m`` must match the file's. ``depth_compression`` ("none" or "gzip", see
+    DEPTH_STORAGE) applies to a new file; a reopened file keeps the storage it was created with.
     """
 
-    def __init__(self, path: str | os.PathLike, config: dict | None = None, depth_max_m: float = DEFAULT_DEPTH_MAX_M):
+    def __init__(
+        self,
+        path: str | os.PathLike,
+        config: dict | None = None,
+        depth_max_m: float = DEFAULT_DEPTH_MAX_M,
+        depth_compression: str = "none",
+    ):
         self.path = Path(path)
         self.depth_max_m = float(depth_max_m)
+        check_depth_compression(depth_compression)
         self.path.parent.mkdir(parents=True, exist_ok=True)
         for stale in self.path.parent.glob(f".{self.path.name}.tmp-*"):
             with contextlib.suppress(OSError):
@@ -451,7 +481,7 @@ class TrajectoryWriter:
             tmp = _tmp_path(self.path)
             try:
                 with h5py.File(tmp, "w", libver="latest") as f:
-                    _create_layout(f, config or {}, self.depth_max_m)
+                    _create_layout(f, config or {}, self.depth_max_m, depth_compression)
                 os.replace(tmp, self.path)
             finally:
                 tmp.unlink(missing_ok=True)
@@ -563,6 +593,7 @@ def _pid_alive(pid: int) -> bool:
 
 __all__ = [
     "DEFAULT_DEPTH_MAX_M",
+    "DEPTH_STORAGE",
     "IMAGE_SHAPE",
     "ROW_FIELDS",
     "SCHEMA_NAME",
@@ -571,8 +602,10 @@ __all__ = [
     "TrajectoryFile",
     "TrajectoryRecord",
     "TrajectoryWriter",
+    "check_depth_compression",
     "check_finite",
     "decode_depth",
+    "depth_storage_of",
     "encode_depth",
     "open_trajectories",
     "validate_file",
