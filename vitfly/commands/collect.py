@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 
+from vitfly.datamodules.schema import DEPTH_STORAGE
 from vitfly.sim.collect import CollectConfig, collect, load_collect_config
 
 _DEFAULTS = CollectConfig()
@@ -42,7 +43,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument(
         "--depth-compression",
-        choices=("none", "gzip"),
+        choices=tuple(DEPTH_STORAGE),
         default=keep,
         help="depth storage of a new file: none streams ~10x faster in training, gzip is ~2.8x smaller "
         f"(YAML, else {_DEFAULTS.depth_compression})",

@@ -8,7 +8,7 @@ import sys
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
 
 from vitfly.datamodules.legacy_import import import_legacy
-from vitfly.datamodules.schema import DEFAULT_DEPTH_MAX_M
+from vitfly.datamodules.schema import DEFAULT_DEPTH_MAX_M, DEPTH_STORAGE
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -22,7 +22,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument(
         "--depth-compression",
-        choices=("none", "gzip"),
+        choices=tuple(DEPTH_STORAGE),
         default="none",
         help="depth storage: none streams ~10x faster in training, gzip is ~2.8x smaller (default: none)",
     )
