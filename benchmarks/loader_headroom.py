@@ -6,12 +6,16 @@ over as uint8; the datamodule's ``on_after_batch_transfer`` makes it float32 on 
 that conversion is timed on the consumer's side, together with ConvNet optimiser steps
 (``benchmarks/train_speed.py``'s ``measure``). Prints the ratio per epoch. Target: >= 10x.
 
-    .venv/bin/python benchmarks/loader_headroom.py --data data/quickstart_spheres.h5 [--cache-mb 1024]
+    .venv/bin/python benchmarks/loader_headroom.py --data data/quickstart_spheres.h5 [--cache-mb 1024] [--cold]
+
+``--cold`` evicts the dataset file from the OS page cache before every epoch (posix_fadvise DONTNEED, no root
+needed), so reads that miss the loader's own cache come from the disk.
 """
 
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 import time
 from pathlib import Path
@@ -25,6 +29,16 @@ sys.path.insert(0, str(Path(__file__).parent))
 from train_speed import measure  # noqa: E402
 
 
+def evict_from_page_cache(path: str) -> None:
+    """Ask the kernel to drop the file's cached pages, so the next reads go to the disk."""
+    fd = os.open(path, os.O_RDONLY)
+    try:
+        os.fdatasync(fd)
+        os.posix_fadvise(fd, 0, 0, os.POSIX_FADV_DONTNEED)
+    finally:
+        os.close(fd)
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--data", required=True, help="a vitfly HDF5 dataset (e.g. from vitfly collect)")
@@ -33,6 +47,7 @@ def main() -> None:
     parser.add_argument("--epochs", type=int, default=3)
     parser.add_argument("--workers", type=int, default=0, help="DataLoader worker processes")
     parser.add_argument("--threads", type=int, default=torch.get_num_threads())
+    parser.add_argument("--cold", action="store_true", help="evict the file from the OS page cache before each epoch")
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
 
@@ -43,6 +58,8 @@ def main() -> None:
     loader = dm.train_dataloader()
     rates = []
     for _ in range(args.epochs):
+        if args.cold:
+            evict_from_page_cache(args.data)
         start, frames = time.perf_counter(), 0
         for batch in loader:
             frames += int(batch["mask"].sum())
@@ -60,6 +77,7 @@ def main() -> None:
     print(
         f"{args.data}: {frames} training frames per epoch, cache {args.cache_mb:.0f} MiB, "
         f"{args.workers} loader workers, {args.threads} threads"
+        + (", file evicted from the page cache before each epoch" if args.cold else "")
     )
     print(
         f"ConvNet training step {step_rate:,.0f} frames/s (4 trajectories x 64 steps per step), uint8 -> float32 "
