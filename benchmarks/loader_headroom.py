@@ -47,12 +47,17 @@ def main() -> None:
     parser.add_argument("--epochs", type=int, default=3)
     parser.add_argument("--workers", type=int, default=0, help="DataLoader worker processes")
     parser.add_argument("--threads", type=int, default=torch.get_num_threads())
+    parser.add_argument("--no-readahead", action="store_true", help="no OS read-ahead hints for the next batch")
     parser.add_argument("--cold", action="store_true", help="evict the file from the OS page cache before each epoch")
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
 
     dm = TrajectoryDataModule(
-        data_path=args.data, batch_size=args.batch_size, cache_mb=args.cache_mb, num_workers=args.workers
+        data_path=args.data,
+        batch_size=args.batch_size,
+        cache_mb=args.cache_mb,
+        num_workers=args.workers,
+        readahead=not args.no_readahead,
     )
     dm.setup("fit")
     loader = dm.train_dataloader()
@@ -78,6 +83,7 @@ def main() -> None:
         f"{args.data}: {frames} training frames per epoch, cache {args.cache_mb:.0f} MiB, "
         f"{args.workers} loader workers, {args.threads} threads"
         + (", file evicted from the page cache before each epoch" if args.cold else "")
+        + (", no read-ahead" if args.no_readahead else "")
     )
     print(
         f"ConvNet training step {step_rate:,.0f} frames/s (4 trajectories x 64 steps per step), uint8 -> float32 "

@@ -11,7 +11,7 @@ import functools
 import json
 import math
 import os
-from collections.abc import Iterator, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
 
 import lightning as L
@@ -42,16 +42,29 @@ class LengthBucketBatchSampler(Sampler[list[int]]):
     """Batches of items with similar lengths (less padding), shuffled, reproducible per (seed, epoch).
 
     Items are shuffled, cut into pools of ``batch_size * pool_batches``, sorted by length within a
-    pool, cut into batches, and the batches shuffled.
+    pool (unless ``sort_by_length`` is False), cut into batches, and the batches shuffled.
+    ``prefetch(items)``, if given, is called with the next batch whenever one is handed out, so its
+    data can be read ahead while this one is used.
     """
 
-    def __init__(self, lengths: Sequence[int], batch_size: int, shuffle: bool, seed: int, pool_batches: int = 50):
+    def __init__(
+        self,
+        lengths: Sequence[int],
+        batch_size: int,
+        shuffle: bool,
+        seed: int,
+        pool_batches: int = 50,
+        prefetch: Callable[[list[int]], None] | None = None,
+        sort_by_length: bool = True,
+    ):
         self.lengths = np.asarray(lengths)
         self.batch_size = batch_size
         self.shuffle = shuffle
         self.seed = seed
         self.pool = batch_size * pool_batches
         self.epoch = 0
+        self.prefetch = prefetch
+        self.sort_by_length = sort_by_length
 
     def set_epoch(self, epoch: int) -> None:
         self.epoch = epoch
@@ -59,22 +72,30 @@ class LengthBucketBatchSampler(Sampler[list[int]]):
     def __len__(self) -> int:
         return math.ceil(len(self.lengths) / self.batch_size)
 
-    def __iter__(self) -> Iterator[list[int]]:
+    def _batches(self) -> list[list[int]]:
         n = len(self.lengths)
         if not self.shuffle:
-            order = np.arange(n)
-            yield from (order[i : i + self.batch_size].tolist() for i in range(0, n, self.batch_size))
-            return
+            return [list(range(i, min(i + self.batch_size, n))) for i in range(0, n, self.batch_size)]
         rng = np.random.default_rng((self.seed, self.epoch))
         self.epoch += 1  # also advances when nobody calls set_epoch
         order = rng.permutation(n)
         batches = []
         for p in range(0, n, self.pool):
             pool = order[p : p + self.pool]
-            pool = pool[np.argsort(self.lengths[pool], kind="stable")]
+            if self.sort_by_length:
+                pool = pool[np.argsort(self.lengths[pool], kind="stable")]
             batches.extend(pool[i : i + self.batch_size].tolist() for i in range(0, len(pool), self.batch_size))
-        for i in rng.permutation(len(batches)):
-            yield batches[i]
+        return [batches[i] for i in rng.permutation(len(batches))]
+
+    def __iter__(self) -> Iterator[list[int]]:
+        batches = self._batches()
+        for k, batch in enumerate(batches):
+            if self.prefetch is not None:
+                if k == 0:
+                    self.prefetch(batch)
+                if k + 1 < len(batches):
+                    self.prefetch(batches[k + 1])
+            yield batch
 
 
 class TrajectoryDataModule(L.LightningDataModule):
@@ -89,6 +110,7 @@ class TrajectoryDataModule(L.LightningDataModule):
         max_length: cut trajectories longer than this many steps into windows (None: whole).
         num_workers: DataLoader worker processes (each opens the file itself).
         cache_mb: per-process in-memory LRU cache of trajectories, MiB (0: always read from disk).
+        readahead: while a batch is read, ask the OS to start reading the next one from disk.
         bucket_by_length: batch trajectories of similar lengths together (less padding).
         use_state: passed through from the policy (recorded with the split; the network zeros the
             state itself when it is False).
@@ -106,6 +128,7 @@ class TrajectoryDataModule(L.LightningDataModule):
         max_length: int | None = None,
         num_workers: int = 0,
         cache_mb: float = 256.0,
+        readahead: bool = True,
         bucket_by_length: bool = True,
         use_state: bool = True,
         test_path: str | None = None,
@@ -123,6 +146,7 @@ class TrajectoryDataModule(L.LightningDataModule):
         self.max_length = max_length
         self.num_workers = num_workers
         self.cache_mb = cache_mb
+        self.readahead = readahead
         self.bucket_by_length = bucket_by_length
         self.use_state = use_state
         self.test_path = test_path
@@ -196,12 +220,14 @@ class TrajectoryDataModule(L.LightningDataModule):
         )
 
     def _loader(self, dataset: TrajectoryDataset, shuffle: bool) -> DataLoader:
-        lengths = dataset.window_lengths()
-        if self.bucket_by_length or not shuffle:
-            sampler = LengthBucketBatchSampler(lengths, self.batch_size, shuffle, self.split_seed)
-            kwargs = {"batch_sampler": sampler}
-        else:
-            kwargs = {"batch_size": self.batch_size, "shuffle": True}
+        sampler = LengthBucketBatchSampler(
+            dataset.window_lengths(),
+            self.batch_size,
+            shuffle,
+            self.split_seed,
+            prefetch=dataset.prefetch if self.readahead else None,
+            sort_by_length=self.bucket_by_length,
+        )
         return DataLoader(
             dataset,
             # depth stays uint8 through the loader (4x less to copy, to pass between processes and to send
@@ -209,7 +235,7 @@ class TrajectoryDataModule(L.LightningDataModule):
             collate_fn=functools.partial(collate_trajectories, depth_dtype=torch.uint8),
             num_workers=self.num_workers,
             persistent_workers=self.num_workers > 0,
-            **kwargs,
+            batch_sampler=sampler,
         )
 
     def on_after_batch_transfer(self, batch: dict, dataloader_idx: int) -> dict:

@@ -127,6 +127,13 @@ class TrajectoryDataset(Dataset):
                 self._cache.put(m, item)
         return item
 
+    def prefetch(self, items: Sequence[int]) -> None:
+        """Start reading the trajectories of ``items`` (dataset indices) in the background (OS read-ahead)."""
+        for i in items:
+            m = self.windows[i][0]
+            if self._cache.get(m) is None:
+                self._handle().prefetch(m, TRAINING_FIELDS)
+
     def __getitem__(self, i: int) -> dict[str, torch.Tensor | int]:
         m, lo, hi = self.windows[i]
         arrays = self.read_arrays(m)

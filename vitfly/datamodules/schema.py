@@ -44,6 +44,7 @@ import h5py
 import numpy as np
 
 from vitfly import __version__
+from vitfly.datamodules.readahead import ChunkReadahead
 from vitfly.errors import VitflyError
 
 SCHEMA_NAME = "vitfly.trajectories"
@@ -335,6 +336,7 @@ class TrajectoryFile:
             self._file.close()
             raise
         self.depth_max_m = float(self._file.attrs["depth_max_m"])
+        self._readahead: ChunkReadahead | None = None
         self.config = json.loads(_attr_str(self._file.attrs.get("config", "{}")) or "{}")
         self.vitfly_version = _attr_str(self._file.attrs.get("vitfly_version", ""))
 
@@ -358,6 +360,12 @@ class TrajectoryFile:
         stop = hi - lo if stop is None else stop
         return {name: self._file[name][lo + start : lo + stop] for name in fields}
 
+    def prefetch(self, m: int, fields: Sequence[str] = tuple(ROW_FIELDS)) -> None:
+        """Hint the kernel to start reading trajectory m's rows of ``fields`` in the background."""
+        if self._readahead is None:
+            self._readahead = ChunkReadahead(self._file, self.path)
+        self._readahead.advise(fields, int(self.offsets[m]), int(self.offsets[m + 1]))
+
     def meta(self, m: int) -> dict[str, Any]:
         """The /trajectories entry of trajectory m (env as str)."""
         row = {name: self.table[name][m] for name in TRAJ_FIELDS}
@@ -374,6 +382,8 @@ class TrajectoryFile:
             yield self[m]
 
     def close(self) -> None:
+        if self._readahead is not None:
+            self._readahead.close()
         self._file.close()
 
     def __enter__(self) -> TrajectoryFile:

@@ -1,0 +1,85 @@
+"""Read-ahead hints: ask the kernel to start reading a trajectory's HDF5 chunks before they are needed.
+
+HDF5 reads a trajectory one chunk at a time, each read waiting on the disk. Telling the kernel which byte
+ranges come next (``posix_fadvise(WILLNEED)``) lets it fetch them into the page cache in the background,
+while the current batch is being read or trained on. Hints never change what is read; where the platform
+or the HDF5 build cannot give chunk addresses, they are silently skipped.
+"""
+
+from __future__ import annotations
+
+import os
+
+import h5py
+import numpy as np
+
+
+class ChunkReadahead:
+    """Byte ranges of row ranges of chunked 1-D-indexed datasets, and WILLNEED hints for them.
+
+    f: the open HDF5 file; path: its path (opened once more, read-only, for the hints).
+    """
+
+    def __init__(self, f: h5py.File, path: str | os.PathLike):
+        self._file = f
+        self._path = os.fspath(path)
+        self._fd: int | None = None
+        self._tables: dict[str, tuple[int, np.ndarray, np.ndarray]] = {}
+        self.enabled = hasattr(os, "posix_fadvise")
+
+    def _table(self, name: str, min_chunks: int) -> tuple[int, np.ndarray, np.ndarray]:
+        """(rows per chunk, byte offset per chunk, byte size per chunk); -1 for chunks not yet written."""
+        table = self._tables.get(name)
+        if table is None or len(table[1]) < min_chunks:  # built before a writer appended more rows
+            ds = self._file[name]
+            rows = ds.chunks[0]
+            n = -(-ds.shape[0] // rows)
+            offsets = np.full(n, -1, dtype=np.int64)
+            sizes = np.zeros(n, dtype=np.int64)
+
+            def visit(info) -> None:
+                k = info.chunk_offset[0] // rows
+                if k < n:
+                    offsets[k], sizes[k] = info.byte_offset, info.size
+
+            ds.id.chunk_iter(visit)
+            table = self._tables[name] = (rows, offsets, sizes)
+        return table
+
+    def byte_ranges(self, name: str, lo: int, hi: int) -> list[tuple[int, int]]:
+        """(start, stop) file byte ranges holding rows [lo, hi) of dataset ``name``, adjacent chunks merged."""
+        if hi <= lo:
+            return []
+        rows, offsets, sizes = self._table(name, (hi - 1) // self._file[name].chunks[0] + 1)
+        ks = np.arange(lo // rows, (hi - 1) // rows + 1)
+        ks = ks[ks < len(offsets)]
+        ks = ks[offsets[ks] >= 0]
+        if len(ks) == 0:
+            return []
+        order = np.argsort(offsets[ks])
+        starts, stops = offsets[ks][order], offsets[ks][order] + sizes[ks][order]
+        ranges: list[tuple[int, int]] = []
+        for start, stop in zip(starts.tolist(), stops.tolist(), strict=True):
+            if ranges and start <= ranges[-1][1]:
+                ranges[-1] = (ranges[-1][0], max(ranges[-1][1], stop))
+            else:
+                ranges.append((start, stop))
+        return ranges
+
+    def advise(self, names: tuple[str, ...] | list[str], lo: int, hi: int) -> None:
+        """Hint that rows [lo, hi) of the datasets ``names`` will be read soon."""
+        if not self.enabled:
+            return
+        try:
+            if self._fd is None:
+                self._fd = os.open(self._path, os.O_RDONLY)
+            for name in names:
+                for start, stop in self.byte_ranges(name, lo, hi):
+                    os.posix_fadvise(self._fd, start, stop - start, os.POSIX_FADV_WILLNEED)
+        except (OSError, NotImplementedError, RuntimeError):
+            self.enabled = False  # an HDF5 build without chunk_iter, or a file system without fadvise
+
+    def close(self) -> None:
+        if self._fd is not None:
+            os.close(self._fd)
+            self._fd = None
