@@ -207,3 +207,16 @@ def test_loader_hands_over_uint8_depth_that_the_transfer_hook_makes_the_contract
         assert converted["depth"].dtype == torch.float32
         torch.testing.assert_close(converted["depth"], expected["depth"], rtol=0, atol=0)
         assert float(converted["depth"].max()) <= 1.0
+
+
+def test_worker_batches_built_in_shared_memory_equal_the_in_process_ones(data_path):
+    epochs = []
+    for workers in (0, 2):
+        dm = TrajectoryDataModule(data_path, batch_size=2, val_fraction=0.0, num_workers=workers)
+        dm.setup("fit")
+        epochs.append(list(dm.train_dataloader()))
+    assert len(epochs[0]) == 3
+    for a, b in zip(*epochs, strict=True):
+        assert b["depth"].dtype == torch.uint8 and b["depth"].is_shared()
+        for key in a:
+            assert torch.equal(a[key], b[key]), key

@@ -7,13 +7,14 @@ each DataLoader worker has its own cache and its own file handle, opened lazily 
 
 from __future__ import annotations
 
+import math
 import os
 from collections import OrderedDict
 from collections.abc import Sequence
 
 import numpy as np
 import torch
-from torch.utils.data import Dataset
+from torch.utils.data import Dataset, get_worker_info
 
 from vitfly.datamodules.schema import TrajectoryFile, open_trajectories
 from vitfly.errors import VitflyError
@@ -159,6 +160,15 @@ def depth_to_unit_float(batch: dict[str, torch.Tensor]) -> dict[str, torch.Tenso
     return batch
 
 
+def _batch_buffer(shape: tuple[int, ...], dtype: torch.dtype) -> torch.Tensor:
+    """An uninitialised tensor; in a DataLoader worker, in shared memory, as torch's default_collate does, so
+    the batch is not copied once more on its way to the main process."""
+    if get_worker_info() is None:
+        return torch.empty(shape, dtype=dtype)
+    storage = torch.UntypedStorage._new_shared(math.prod(shape) * dtype.itemsize)
+    return torch.empty(0, dtype=dtype).set_(storage).view(shape)
+
+
 def collate_trajectories(items: list[dict], depth_dtype: torch.dtype = torch.float32) -> dict[str, torch.Tensor]:
     """Pad B items to the longest and stack them (the batch contract of DESIGN.md).
 
@@ -172,7 +182,7 @@ def collate_trajectories(items: list[dict], depth_dtype: torch.dtype = torch.flo
     t = max(item["depth"].shape[0] for item in items)
     h, w = items[0]["depth"].shape[1:]
     # depth is the bulk of a batch: convert uint8 straight into the output, zero only the padding
-    depth = torch.empty((b, t, 1, h, w), dtype=depth_dtype)
+    depth = _batch_buffer((b, t, 1, h, w), depth_dtype)
     speed = torch.zeros((b, t, 1), dtype=torch.float32)
     quat = torch.zeros((b, t, 4), dtype=torch.float32)
     cmd = torch.zeros((b, t, 3), dtype=torch.float32)
