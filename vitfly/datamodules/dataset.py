@@ -50,6 +50,9 @@ class TrajectoryCache:
     def __len__(self) -> int:
         return len(self._items)
 
+    def __contains__(self, key: int) -> bool:
+        return key in self._items
+
 
 def make_windows(lengths: Sequence[int], indices: Sequence[int], max_length: int | None) -> list[tuple[int, int, int]]:
     """(trajectory, start, stop) items: whole trajectories, or consecutive windows of <= max_length steps."""
@@ -132,7 +135,7 @@ class TrajectoryDataset(Dataset):
         """Start reading the trajectories of ``items`` (dataset indices) in the background (OS read-ahead)."""
         for i in items:
             m = self.windows[i][0]
-            if self._cache.get(m) is None:
+            if m not in self._cache:
                 self._handle().prefetch(m, TRAINING_FIELDS)
 
     def __getitem__(self, i: int) -> dict[str, torch.Tensor | int]:

@@ -27,11 +27,14 @@ class ChunkReadahead:
         self._tables: dict[str, tuple[int, np.ndarray, np.ndarray]] = {}
         self.enabled = hasattr(os, "posix_fadvise")
 
-    def _table(self, name: str, min_chunks: int) -> tuple[int, np.ndarray, np.ndarray]:
-        """(rows per chunk, byte offset per chunk, byte size per chunk); -1 for chunks not yet written."""
+    def _table(self, name: str, hi: int) -> tuple[int, np.ndarray, np.ndarray]:
+        """(rows per chunk, byte offset per chunk, byte size per chunk) covering rows [0, hi) at least;
+        offset -1 for chunks not written."""
         table = self._tables.get(name)
-        if table is None or len(table[1]) < min_chunks:  # built before a writer appended more rows
+        if table is None or len(table[1]) * table[0] < hi:  # new, or built before a writer appended rows
             ds = self._file[name]
+            if self._file.swmr_mode:  # a file a live writer is still appending to
+                ds.refresh()
             rows = ds.chunks[0]
             n = -(-ds.shape[0] // rows)
             offsets = np.full(n, -1, dtype=np.int64)
@@ -50,7 +53,7 @@ class ChunkReadahead:
         """(start, stop) file byte ranges holding rows [lo, hi) of dataset ``name``, adjacent chunks merged."""
         if hi <= lo:
             return []
-        rows, offsets, sizes = self._table(name, (hi - 1) // self._file[name].chunks[0] + 1)
+        rows, offsets, sizes = self._table(name, hi)
         ks = np.arange(lo // rows, (hi - 1) // rows + 1)
         ks = ks[ks < len(offsets)]
         ks = ks[offsets[ks] >= 0]
