@@ -75,8 +75,8 @@ TRAJ_FIELDS: dict[str, np.dtype] = {
 FLOAT_ROW_FIELDS = tuple(k for k, (dt, _) in ROW_FIELDS.items() if dt.kind == "f")
 TELEMETRY_CHUNK_ROWS = 4096
 DEPTH_CHUNK_FRAMES = 64
-# How /depth is stored (the reader handles both). "none" streams about 10x faster than "gzip" (gzip
-# inflation bounds a reader at ~40k frames/s per core) for about 2.8x the file size.
+# How /depth is stored (the reader handles both). "none" streams several times faster than "gzip" (gzip
+# inflation bounds the reader; benchmarks/loader_headroom.py) for about 2.8x the file size.
 DEPTH_STORAGE: dict[str, dict[str, Any]] = {
     # uncompressed chunks are rewritten in place, so an append may share a chunk with committed rows
     "none": {"chunks": (DEPTH_CHUNK_FRAMES, *IMAGE_SHAPE)},
