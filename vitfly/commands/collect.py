@@ -45,7 +45,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--depth-compression",
         choices=tuple(DEPTH_STORAGE),
         default=keep,
-        help="depth storage of a new file: none streams 5-15x faster in training, gzip is ~2.8x smaller "
+        help="depth storage of a new file: none streams several times faster in training, gzip is ~2.8x smaller "
         f"(YAML, else {_DEFAULTS.depth_compression})",
     )
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")

@@ -24,7 +24,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--depth-compression",
         choices=tuple(DEPTH_STORAGE),
         default="none",
-        help="depth storage: none streams 5-15x faster in training, gzip is ~2.8x smaller (default: none)",
+        help="depth storage: none streams several times faster in training, gzip is ~2.8x smaller (default: none)",
     )
 
 
