@@ -133,8 +133,7 @@ class TrajectoryDataset(Dataset):
 
     def prefetch(self, items: Sequence[int]) -> None:
         """Start reading the trajectories of ``items`` (dataset indices) in the background (OS read-ahead)."""
-        for i in items:
-            m = self.windows[i][0]
+        for m in dict.fromkeys(self.windows[i][0] for i in items):  # windows of one trajectory: one hint
             if m not in self._cache:
                 self._handle().prefetch(m, TRAINING_FIELDS)
 
