@@ -7,13 +7,19 @@ import math
 import numpy as np
 import pytest
 
+from vitfly.errors import VitflyError
 from vitfly.eval import plots, records
 from vitfly.eval.aggregate import summarize
+from vitfly.eval.fingerprint import Setup
 from vitfly.eval.metrics import trial_metrics
 from vitfly.eval.report import write_reports
 
 
-def make_record(policy, env, speed, trial, *, swerve=1.0, hit_ticks=(), seed=0, goal=True):
+def make_setup(policy_id="a" * 16, sweep_seed=0, preset="medium", rollout_id="r" * 16, scene_id="s" * 16):
+    return Setup(policy_id, rollout_id, sweep_seed, preset, scene_id)
+
+
+def make_record(policy, env, speed, trial, *, swerve=1.0, hit_ticks=(), seed=0, goal=True, setup=None):
     """A synthetic trial: forward flight at ``speed`` with a lateral swerve; contact on ``hit_ticks``."""
     dt, n = 1 / 30, 40
     t = np.arange(n) * dt
@@ -28,9 +34,11 @@ def make_record(policy, env, speed, trial, *, swerve=1.0, hit_ticks=(), seed=0, 
     arr = {k: np.asarray(v) for k, v in path.items()}
     m = trial_metrics(arr["time"], arr["position"], arr["velocity"], arr["command"], arr["contact"],
                       desired_speed_mps=speed, goal_x_m=60.0, reached_goal=goal, processing_ms=1.5)
+    setup = setup or make_setup()
     return records.TrialRecord(policy=policy, env=env, speed=speed, trial=trial, scene_seed=seed,
-                               success=m.success, reached_goal=goal, end_reason="goal" if goal else "timeout",
-                               metrics=m.to_dict(), path=path)
+                               success_paper=m.success_paper, success_strict=m.success_strict, reached_goal=goal,
+                               end_reason="goal" if goal else "timeout", metrics=m.to_dict(), path=path,
+                               setup=setup.to_dict(), setup_id=setup.id)
 
 
 def sweep(policy="expert", env="spheres"):
@@ -47,7 +55,8 @@ def test_record_round_trip_and_recomputed_metrics(tmp_path):
     f = tmp_path / "trials.jsonl"
     records.append_record(f, rec)
     (back,) = records.read_records(f)
-    assert back.key == rec.key and back.success == rec.success
+    assert back.key == rec.key and (back.success_paper, back.success_strict) == (False, False)
+    assert back.setup == rec.setup and back.setup_id == make_setup().id
     assert back.metrics["collisions"] == 1
     assert back.metrics["time_in_collision_s"] == pytest.approx(2 / 30, rel=1e-4)  # times stored to 1 us
     # metrics recomputed from the stored path equal the stored metrics
@@ -80,6 +89,34 @@ def test_corrupt_line_names_file_and_line(tmp_path):
     f.write_text('{"schema": "something else"}\n')
     with pytest.raises(Exception, match=r"trials.jsonl: line 1.*schema"):
         records.read_records(f)
+    # records of version 1 were keyed by the label alone: refused, with what to do
+    f.write_text('{"schema": "vitfly.trial", "version": 1}\n')
+    with pytest.raises(VitflyError, match=r"trials.jsonl: line 1: a trial record of version 1.*new --out"):
+        records.read_records(f)
+
+
+def test_records_are_keyed_by_setup_and_labels_must_not_mix_setups(tmp_path):
+    old, new = make_setup("a" * 16), make_setup("b" * 16)
+    a = make_record("convnet", "spheres", 3.0, 0, setup=old)
+    b = make_record("convnet", "spheres", 3.0, 0, setup=new)
+    assert a.key != b.key  # the same label, env, speed and trial, but another policy: another trial
+    f = tmp_path / "trials.jsonl"
+    for rec in (a, b, make_record("expert", "spheres", 3.0, 0, setup=make_setup("e" * 16))):
+        records.append_record(f, rec)
+    recs = records.read_sweep(tmp_path)
+    assert len(recs) == 3
+    with pytest.raises(VitflyError, match=r"'convnet' holds trials flown with different setups \(policy "):
+        records.check_consistent(recs, str(tmp_path))
+    # another seed in another env is a mix too (one label, one sweep)
+    c = make_record("convnet", "trees", 3.0, 0, setup=make_setup("a" * 16, sweep_seed=1))
+    with pytest.raises(VitflyError, match=r"--seed \(0, now 1\)"):
+        records.check_consistent([a, c], "dir")
+    # removing the stale ones leaves a consistent store; the rewrite keeps the other lines byte for byte
+    keep_lines = [x for x in f.read_text().splitlines() if '"bbbb' not in x]
+    assert records.remove_records(f, lambda r: r.setup_id == new.id) == 1
+    assert f.read_text().splitlines() == keep_lines
+    records.check_consistent(records.read_sweep(tmp_path), str(tmp_path))
+    assert records.remove_records(f, lambda r: False) == 0
 
 
 def test_summary_rows_and_csv(tmp_path):
@@ -88,22 +125,32 @@ def test_summary_rows_and_csv(tmp_path):
     assert [(r["policy"], r["speed"]) for r in rows] == [("expert", 3.0), ("expert", 5.0), ("straight", 3.0),
                                                           ("straight", 5.0)]
     r = rows[0]
-    assert r["trials"] == 3
-    assert r["success_rate"] == pytest.approx(1 / 3)  # trial 1 only: 0 hit, 2 not at goal
+    assert r["trials"] == 3 and r["policy_id"] == "a" * 16
+    # trial 0 collides (twice), trial 1 is clean at the goal, trial 2 is clean but timed out
+    assert r["success_paper_rate"] == pytest.approx(2 / 3)  # no collision: trials 1 and 2
+    assert r["success_strict_rate"] == pytest.approx(1 / 3)  # goal and no collision: trial 1
+    assert r["reached_goal_rate"] == pytest.approx(2 / 3)
     assert r["collisions_mean"] == pytest.approx(2 / 3)  # 2, 0, 0
     assert r["collisions_std"] == pytest.approx(np.std([2, 0, 0], ddof=1))
-    assert r["time_in_collision_mean"] == pytest.approx(1.5 / 30, rel=1e-4)  # 3 ticks / 2 entries, one trial defines it
+    # trial 0: 3 ticks of 1/30 s / 2 collisions = 0.05 s; the paper's mean runs over all trials: 0.05 / 3
+    assert r["time_in_collision_mean"] == pytest.approx(0.05 / 3, rel=1e-4)
+    assert r["time_in_collision_colliding_mean"] == pytest.approx(0.05, rel=1e-4)  # trial 0 alone
     paths = write_reports(tmp_path, rows)
     with open(paths["csv"]) as fh:
         table = list(csv.DictReader(fh))
     assert len(table) == 4
-    for col in ("policy", "env", "speed", "trials", "success_rate", "collisions_mean", "time_in_collision_mean",
-                "energy_cost_mean", "cmd_acc_mean"):
+    for col in ("policy", "policy_id", "env", "speed", "trials", "success_paper_rate", "success_strict_rate",
+                "collisions_mean", "time_in_collision_mean", "time_in_collision_colliding_mean", "energy_cost_mean",
+                "cmd_acc_mean", "time_to_goal_mean"):
         assert col in table[0]
+    assert "success_rate" not in table[0]  # every success column names its definition
     assert float(table[0]["energy_cost_mean"]) > 0
-    assert table[2]["time_in_collision_std"] == "0.0"
+    assert table[2]["time_in_collision_colliding_std"] == "0.0"  # one colliding trial
+    assert float(table[2]["time_in_collision_std"]) == pytest.approx(np.std([0.05, 0, 0], ddof=1), rel=1e-4)
     md = paths["markdown"].read_text()
-    assert "| expert | spheres | 3 | 3 | 33 |" in md
+    assert "| expert | spheres | 3 | 3 | 67 | 33 |" in md
+    assert "success % (paper) | success % (strict)" in md
+    assert "success (paper) = no collision" in md and "success (strict) = goal reached and no collision" in md
     assert md.startswith("| policy") and md.count("\n| ") == 4  # 4 rows under the header
 
 

@@ -59,7 +59,8 @@ def test_evaluate_resumes_and_shards_merge(tmp_path, capsys):
     assert len(recs) == 4
     r = recs[0]
     assert r["policy"] == "straight" and r["outcome"]["end_reason"] == "timeout"
-    assert set(r["path"]) == {"time", "position", "velocity", "command", "contact"}
+    assert set(r["path"]) == {"time", "position", "velocity", "command", "contact", "end"}
+    assert r["path"]["end"]["time"] > r["path"]["time"][-1]  # the state after the last tick's physics steps
     assert len(r["path"]["time"]) == len(r["path"]["position"]) >= 40
     assert r["path"]["command"][5] == [r["speed"], 0.0, 0.0]  # straight ahead at the desired speed
     assert r["extra"]["scene"]["env"] == "spheres"
@@ -161,3 +162,105 @@ def test_original_checkpoint_with_arch(tmp_path, capsys):
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "convnet.pth" in err[0]
     assert not (tmp_path / "bad").exists()
+
+
+def _tiny_checkpoint(path, seed):
+    from vitfly.zoo import create_model, save_checkpoint
+
+    torch.manual_seed(seed)
+    save_checkpoint(create_model("convnet"), "convnet", True, path)
+
+
+def one_error_line(capsys) -> str:
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("vitfly: error:"), err
+    return err[0]
+
+
+def test_trials_are_keyed_by_what_was_flown(tmp_path, capsys):
+    out, ckpt = tmp_path / "eval", tmp_path / "net.ckpt"
+    _tiny_checkpoint(ckpt, seed=0)
+    args = ["--policy", str(ckpt), "--name", "net", "--speeds", "4", "--trials", "2"]
+    assert evaluate(out, *args) == 0
+    first = records.read_sweep(out)
+    assert len(first) == 2 and len({r.setup["policy_id"] for r in first}) == 1
+    # an identical rerun resumes: nothing is flown again
+    capsys.readouterr()
+    assert evaluate(out, *args) == 0
+    assert "0 trials flown, 2 already done" in capsys.readouterr().out
+    before = (out / "trials.jsonl").read_bytes()
+
+    # another checkpoint under the same path and label (a retrain): refused, one line, nothing written
+    _tiny_checkpoint(ckpt, seed=1)
+    assert evaluate(out, *args) == 2
+    line = one_error_line(capsys)
+    assert "2 trials of 'net' there were flown with another policy (weights" in line and "--overwrite" in line
+    assert (out / "trials.jsonl").read_bytes() == before
+    # ... flown anew with --overwrite: the stale trials are replaced, not mixed with the new ones
+    assert evaluate(out, *args, "--overwrite") == 0
+    assert "2 trials flown, 0 already done, 2 of another setup replaced" in capsys.readouterr().out
+    second = records.read_sweep(out)
+    assert len(second) == 2 and {r.setup["policy_id"] for r in second} != {r.setup["policy_id"] for r in first}
+    assert {r.scene_seed for r in second} == {r.scene_seed for r in first}  # the same scenes, flown again
+
+    # another --seed, another preset, other rollout settings under the same label: refused, saying which
+    for extra, what in ((["--seed", "1"], "--seed (0, now 1)"), (["--preset", "hard"], "--preset (medium, now hard)"),
+                        (["--timeout", "2.0"], "rollout settings")):
+        assert evaluate(out, *args, *extra) == 2, extra
+        assert what in one_error_line(capsys)
+    # under another label they fly beside the others
+    assert evaluate(out, *args, "--seed", "1", "--name", "net-seed1") == 0
+    recs = records.read_sweep(out)
+    assert {r.policy for r in recs} == {"net", "net-seed1"} and len(recs) == 4
+    with open(out / "summary.csv") as fh:
+        assert {row["policy"] for row in csv.DictReader(fh)} == {"net", "net-seed1"}
+
+
+def test_merge_refuses_two_setups_under_one_label(tmp_path, capsys):
+    a, b, merged = tmp_path / "a", tmp_path / "b", tmp_path / "merged"
+    assert evaluate(a, "--policy", "straight", "--speeds", "3", "--trials", "1") == 0
+    assert evaluate(b, "--policy", "straight", "--speeds", "3", "--trials", "1", "--seed", "5") == 0
+    capsys.readouterr()
+    assert main(["evaluate", "--out", str(merged), "--merge", str(a), str(b), "--no-plots"]) == 2
+    assert "'straight' holds trials flown with different setups (--seed (0, now 5))" in one_error_line(capsys)
+    assert not (merged / "trials.jsonl").exists()
+
+
+def test_goal_crossing_defines_time_to_goal(tmp_path):
+    out = tmp_path / "goal"
+    # straight flight reaches x = 60 m (obstacles do not stop it); no control tick lies at or beyond the goal
+    assert main(["evaluate", "--out", str(out), "--policy", "straight", "--speeds", "7", "--trials", "2",
+                 "--no-gif", "--no-plots", "--no-progress"]) == 0
+    for rec in records.read_sweep(out):
+        assert rec.end_reason == "goal" and rec.path["position"][-1][0] < 60.0 <= rec.path["end"]["position"][0]
+        # about 59.5 m at a little under 7 m/s
+        assert 59.5 / 7.0 < rec.metrics["time_to_goal_s"] < 59.5 / 6.0
+
+
+def test_killed_sweep_resumes(tmp_path, capsys):
+    import subprocess
+    import sys
+    import time
+
+    out = tmp_path / "killed"
+    args = ["--policy", "straight", "--speeds", "3", "--trials", "12", "--num-envs", "1", "--timeout", "3.0",
+            "--no-gif", "--no-plots", "--no-progress"]
+    env = {**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[1])}
+    proc = subprocess.Popen([sys.executable, "-m", "vitfly.cli", "evaluate", "--out", str(out), *args], env=env,
+                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    try:
+        deadline = time.monotonic() + 120
+        while time.monotonic() < deadline and proc.poll() is None:
+            f = out / "trials.jsonl"
+            if f.exists() and f.read_bytes().count(b"\n") >= 2:
+                break
+            time.sleep(0.05)
+    finally:
+        proc.kill()  # SIGKILL: no cleanup of any kind
+        proc.wait()
+    done = len(records.read_records(out / "trials.jsonl"))
+    assert 2 <= done < 12, done
+    assert main(["evaluate", "--out", str(out), *args]) == 0
+    assert f"{12 - done} trials flown, {done} already done" in capsys.readouterr().out
+    recs = records.read_sweep(out)
+    assert sorted(r.trial for r in recs) == list(range(12))

@@ -3,6 +3,7 @@
 import json
 
 import pytest
+import torch
 
 from vitfly.cli import main
 from vitfly.eval.pipeline import load_pipeline_config, success_by_policy
@@ -52,9 +53,41 @@ def test_bad_config_is_one_line(tmp_path, capsys, text, message):
 
 
 def test_success_by_policy_weights_cells_by_trials():
-    rows = [{"policy": "a", "success_rate": 0.5, "trials": 2}, {"policy": "a", "success_rate": 1.0, "trials": 6},
-            {"policy": "b", "success_rate": 0.0, "trials": 4}]
+    rows = [{"policy": "a", "success_paper_rate": 0.5, "success_strict_rate": 0.5, "trials": 2},
+            {"policy": "a", "success_paper_rate": 1.0, "success_strict_rate": 0.5, "trials": 6},
+            {"policy": "b", "success_paper_rate": 0.0, "success_strict_rate": 0.0, "trials": 4}]
+    # (0.5 * 2 + 1.0 * 6) / 8 = 7/8 by the paper's definition; (0.5 * 2 + 0.5 * 6) / 8 = 1/2 strict
     assert success_by_policy(rows) == {"a": pytest.approx(7 / 8), "b": 0.0}
+    assert success_by_policy(rows, "success_strict_rate") == {"a": pytest.approx(0.5), "b": 0.0}
+
+
+def test_evaluate_stage_flies_a_retrained_model_again(tmp_path, capsys):
+    from vitfly.eval import records
+    from vitfly.eval.pipeline import EvalStage, stage_evaluate
+    from vitfly.zoo import create_model, save_checkpoint
+
+    ckpt, out = tmp_path / "train" / "best.ckpt", tmp_path / "eval"
+    ckpt.parent.mkdir()
+    stage = EvalStage(speeds=[4.0], trials=2, num_envs=2, timeout_s=1.0)
+    policies = [(str(ckpt), "convnet"), ("straight", None)]
+    ids = []
+    for seed in (0, 0, 1):  # trained, the same checkpoint again, then retrained (other weights, same path)
+        torch.manual_seed(seed)
+        save_checkpoint(create_model("convnet"), "convnet", True, ckpt)
+        stage_evaluate(stage, out, policies, progress=False, gif_for=0)
+        ids.append({r.setup["policy_id"] for r in records.read_sweep(out) if r.policy == "convnet"})
+    text = capsys.readouterr().out.splitlines()
+    assert text == ["[evaluate] convnet: 2 trials flown, 0 done before",
+                    "[evaluate] straight: 2 trials flown, 0 done before",
+                    "[evaluate] convnet: 0 trials flown, 2 done before",
+                    "[evaluate] straight: 0 trials flown, 2 done before",
+                    "[evaluate] convnet: 2 trials flown, 0 done before, 2 stale trials (another setup) replaced",
+                    "[evaluate] straight: 0 trials flown, 2 done before"]
+    assert len(ids[0]) == len(ids[2]) == 1 and ids[0] == ids[1] != ids[2]
+    assert len(records.read_sweep(out)) == 4
+    # the depth GIF shows the retrained model too
+    about = json.loads((out / "depth_convnet_spheres.json").read_text())
+    assert about["setup"]["policy_id"] == next(iter(ids[2]))
 
 
 def test_tiny_pipeline_end_to_end_and_resume(tmp_path, capsys):
@@ -65,8 +98,8 @@ def test_tiny_pipeline_end_to_end_and_resume(tmp_path, capsys):
     text = capsys.readouterr().out
     assert "[collect]" in text and "[train]" in text and "success over all trials" in text
     result = json.loads((out / "pipeline.json").read_text())
-    assert set(result["success_rate"]) == {"convnet", "expert", "straight"}
-    assert isinstance(result["beats_straight"], bool)
+    assert set(result["success_paper"]) == set(result["success_strict"]) == {"convnet", "expert", "straight"}
+    assert isinstance(result["beats_straight"], bool) and isinstance(result["beats_straight_strict"], bool)
     ev = out / "eval"
     for name in ("summary.csv", "summary.md", "rates_vs_speed.png", "energy_vs_speed.png", "paths_spheres.png",
                  "time_in_collision_vs_speed.png", "depth_convnet_spheres.gif"):

@@ -1,4 +1,9 @@
-"""``vitfly evaluate``: fly a policy closed-loop over envs x speeds x trials and score it (resumable)."""
+"""``vitfly evaluate``: fly a policy closed-loop over envs x speeds x trials and score it (resumable).
+
+Trials are keyed by what was flown (the policy's content, --seed, --preset, the rollout settings):
+an identical rerun resumes; a rerun into the same --out under the same label with anything of
+that changed is refused with one line, or replaces the stale trials with --overwrite.
+"""
 
 from __future__ import annotations
 
@@ -18,6 +23,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--trials", type=int, help="trials per (env, speed) (config default: 10)")
     parser.add_argument("--seed", type=int, help="sweep seed: scene seeds derive from (seed, env, trial)")
     parser.add_argument("--out", help="output directory: trials.jsonl, summary.csv/.md, plots (default runs/eval)")
+    parser.add_argument("--overwrite", action="store_true",
+                        help="replace this label's trials in --out that were flown with another checkpoint, seed, "
+                             "preset or rollout settings (default: refuse)")
     parser.add_argument("--num-envs", type=int, help="scenes stepped in lockstep per batched policy call")
     parser.add_argument("--workers", type=int, help="worker processes")
     parser.add_argument("--shard", help="i/n: fly only shard i (0-based) of n; shards' outputs merge")
@@ -43,6 +51,7 @@ def run(args: argparse.Namespace) -> int:
                                               "backend", "timeout_s", "wandb_project")}
     overrides["gif"] = False if args.no_gif else None
     overrides["plots"] = False if args.no_plots else None
+    overrides["overwrite"] = True if args.overwrite else None
     cfg = load_sweep_config(args.config, overrides)
     if args.merge or args.report_only:
         if args.merge:
@@ -52,7 +61,8 @@ def run(args: argparse.Namespace) -> int:
         result = run_evaluation(cfg, progress=not args.no_progress)
         rows, files = result.rows, result.files
         o = result.outcome
-        print(f"{cfg.label}: {o.flown} trials flown, {o.skipped} already done, {o.wall_s:.1f} s")
+        replaced = f", {o.replaced} of another setup replaced" if o.replaced else ""
+        print(f"{cfg.label}: {o.flown} trials flown, {o.skipped} already done{replaced}, {o.wall_s:.1f} s")
     print_table(rows, title=f"closed-loop evaluation ({cfg.out})")
     print("wrote " + ", ".join(str(p) for p in files.values()))
     return 0

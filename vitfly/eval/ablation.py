@@ -3,7 +3,9 @@ spheres and trees at 3, 5 and 7 m/s, success rates beside the paper's (``tables/
 
 Layout of ``OUT``: ``train/<model>-state`` and ``train/<model>-nostate`` (checkpoints, resumable),
 ``eval/`` (one trials.jsonl for all policies, labels ``<model>`` and ``<model>-nostate``, reports
-and plots), ``ablation.csv`` and ``ablation.md`` (the table). Every stage resumes.
+and plots), ``ablation.csv`` and ``ablation.md`` (the table; success as the paper defines it, a
+trial without a collision). Every stage resumes; a retrained model is flown again (its trials are
+keyed by its weights, see ``vitfly.eval.pipeline.stage_evaluate``).
 """
 
 from __future__ import annotations
@@ -71,7 +73,10 @@ def run_label(model: str, use_state: bool) -> str:
 
 
 def ablation_rows(summary_rows: list[dict], cfg: AblationConfig) -> list[dict]:
-    """One row per (env, model, speed): our success rate with and without state, and the paper's."""
+    """One row per (env, model, speed): our success rate with and without state, and the paper's.
+
+    Success is the paper's definition (a trial without a collision), as in the paper's table.
+    """
     by_key = {(r["policy"], r["env"], float(r["speed"])): r for r in summary_rows}
     rows = []
     for env in cfg.evaluate.env:
@@ -80,7 +85,7 @@ def ablation_rows(summary_rows: list[dict], cfg: AblationConfig) -> list[dict]:
                 row = {"env": env, "model": model, "speed": float(speed)}
                 for use_state, tag in ((False, "nostate"), (True, "state")):
                     r = by_key.get((run_label(model, use_state), env, float(speed)))
-                    row[f"success_{tag}"] = None if r is None else r["success_rate"]
+                    row[f"success_{tag}"] = None if r is None else r["success_paper_rate"]
                     row[f"trials_{tag}"] = 0 if r is None else r["trials"]
                     row[f"paper_{tag}"] = paper_success(env, model, speed, use_state)
                 rows.append(row)
@@ -105,7 +110,8 @@ def ablation_markdown(rows: list[dict], speeds: list[float]) -> str:
         lines.append(f"| {env} | {MODEL_LABELS.get(model, model)} | " + " | ".join(c) + " |")
     return "\n".join([
         "Success rate (%) without (✗) and with (✓) the state input (desired speed + attitude); "
-        "ours, the paper's in parentheses (paper: tables/table-no-state-info).", "", *lines, ""])
+        "ours, the paper's in parentheses (paper: tables/table-no-state-info). Success as the paper "
+        "defines it: a trial without a collision.", "", *lines, ""])
 
 
 def ablation_csv(rows: list[dict]) -> str:
@@ -123,7 +129,7 @@ def print_ablation(rows: list[dict], speeds: list[float]) -> None:
     from rich.console import Console
     from rich.table import Table
 
-    table = Table(title="no-state ablation: success % without ✗ / with ✓ state -- ours (paper)")
+    table = Table(title="no-state ablation: success % (paper: no collision) without ✗ / with ✓ state -- ours (paper)")
     table.add_column("env")
     table.add_column("model")
     for s in speeds:

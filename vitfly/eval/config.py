@@ -40,6 +40,7 @@ class SweepConfig:
     gif: bool = True  # re-fly one trial with depth frames and write a GIF with the command arrow
     plots: bool = True
     wandb_project: str | None = None  # log the summary and plots to wandb when set
+    overwrite: bool = False  # replace this label's trials in ``out`` that were flown with another setup
 
     def validate(self, source: str = "config") -> SweepConfig:
         for e in self.env:

@@ -1,23 +1,27 @@
 """``vitfly evaluate`` as a library call: sweep, then reports, plots, a depth GIF and (optionally) wandb.
 
 Reports always cover every record in the output directory, so several policies evaluated into one
-directory (or shards that share it, or merged directories) give one comparison.
+directory (or shards that share it, or merged directories) give one comparison; a directory where
+one label holds trials of two setups (e.g. two checkpoints) is refused rather than reported.
 """
 
 from __future__ import annotations
 
+import json
 import re
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from vitfly.atomic import write_text
 from vitfly.errors import VitflyError
 from vitfly.eval import plots, records
 from vitfly.eval.aggregate import summarize
 from vitfly.eval.config import SweepConfig
+from vitfly.eval.fingerprint import SweepIdentity
 from vitfly.eval.policy_source import PolicySource
 from vitfly.eval.report import write_reports
-from vitfly.eval.sweep import SweepOutcome, plan_trials, rollout_config, run_sweep
+from vitfly.eval.sweep import SweepOutcome, plan_trials, policy_source, rollout_config, run_sweep, sweep_identity
 
 MAX_GIF_FRAMES = 300  # longer trials are subsampled (GIF size)
 
@@ -44,6 +48,7 @@ def write_outputs(out_dir: str | Path, with_plots: bool = True, title: str | Non
     recs = records.read_sweep(out_dir)
     if not recs:
         raise VitflyError(f"{out_dir}: no finished trials (trials*.jsonl) to report on")
+    records.check_consistent(recs, str(out_dir))
     rows = summarize(recs)
     files = dict(write_reports(out_dir, rows, title))
     if with_plots:
@@ -56,37 +61,50 @@ def _safe(name: str) -> str:
     return re.sub(r"[^A-Za-z0-9_.-]+", "_", name)
 
 
-def depth_gif(cfg: SweepConfig, source: PolicySource | None = None) -> Path:
-    """Fly the first trial of the first env at the middle speed with depth frames recorded; write the GIF."""
+def depth_gif(cfg: SweepConfig, source: PolicySource | None = None, identity: SweepIdentity | None = None) -> Path:
+    """Fly the first trial of the first env at the middle speed with depth frames recorded; write the GIF.
+
+    ``depth_<label>_<env>.json`` beside it names the setup it shows; a GIF of another setup (e.g. the
+    checkpoint before a retrain) is flown again.
+    """
     from vitfly.sim.rollout import run_episodes
     from vitfly.sim.scenes import make_scene
     from vitfly.sim.visualize import write_gif
 
     spec = next(s for s in plan_trials(cfg) if s.speed == sorted(cfg.speeds)[len(cfg.speeds) // 2])
     path = Path(cfg.out) / f"depth_{_safe(cfg.label)}_{spec.env}.gif"
-    if path.exists():
+    source = source or policy_source(cfg)
+    setup = (identity or sweep_identity(cfg, source)).setup(spec.env)
+    about = {"policy": cfg.label, "setup_id": setup.id, "setup": setup.to_dict(), "env": spec.env,
+             "scene_seed": spec.scene_seed, "speed": spec.speed}
+    sidecar = path.with_suffix(".json")
+    if path.exists() and sidecar.exists() and json.loads(sidecar.read_text()).get("setup_id") == setup.id:
         return path
-    source = source or PolicySource(cfg.policy, cfg.arch, cfg.backend, cfg.device, cfg.threads)
     result = run_episodes([make_scene(spec.env, spec.preset, spec.scene_seed)], [spec.speed], source.build(),
                           rollout_config(cfg, record_depth=True))[0]
     stride = max(1, -(-len(result.log) // MAX_GIF_FRAMES))
-    return write_gif(result, path, stride=stride)
+    write_gif(result, path, stride=stride)
+    write_text(sidecar, json.dumps(about, indent=2) + "\n")
+    return path
 
 
 def merge_into(out_dir: str | Path, sources: Sequence[str | Path]) -> int:
     """Copy the records of other sweep directories (e.g. shards run elsewhere) into ``out_dir``; returns
-    how many were new."""
-    have = {r.key for r in records.read_sweep(out_dir)}
-    added = 0
+    how many were new. Refused, before anything is written, if a label would then hold two setups."""
+    have = records.read_sweep(out_dir)
+    keys = {r.key for r in have}
+    new = []
     for src in sources:
         if not Path(src).is_dir():
             raise VitflyError(f"--merge {src}: not a directory of trials*.jsonl")
         for rec in records.read_sweep(src):
-            if rec.key not in have:
-                records.append_record(Path(out_dir) / records.TRIALS_FILE, rec)
-                have.add(rec.key)
-                added += 1
-    return added
+            if rec.key not in keys:
+                new.append(rec)
+                keys.add(rec.key)
+    records.check_consistent([*have, *new], f"--merge into {out_dir}")
+    for rec in new:
+        records.append_record(Path(out_dir) / records.TRIALS_FILE, rec)
+    return len(new)
 
 
 def run_evaluation(cfg: SweepConfig, progress: bool = True) -> EvaluationResult:
@@ -94,7 +112,7 @@ def run_evaluation(cfg: SweepConfig, progress: bool = True) -> EvaluationResult:
     outcome = run_sweep(cfg, progress=progress)
     rows, files = write_outputs(cfg.out, cfg.plots)
     if cfg.gif:
-        files[f"depth_{cfg.label}"] = depth_gif(cfg)
+        files[f"depth_{cfg.label}"] = depth_gif(cfg, identity=outcome.identity)
     if cfg.wandb_project:
         from vitfly.eval.wandb_log import log_evaluation
 

@@ -6,9 +6,11 @@ Stages, each resumable (a rerun skips what is finished):
 2. train: ``vitfly.training.train_policy`` into ``OUT/train`` (resumes from ``last.ckpt``); a
    finished stage leaves ``OUT/train/done.json`` naming the checkpoint;
 3. evaluate: the trained policy, then each baseline, over the same scenes into ``OUT/eval``
-   (``trials.jsonl`` resumes per trial);
+   (``trials.jsonl`` resumes per trial; trials are keyed by what was flown, so a retrained model, a
+   changed expert or changed evaluation settings replace the stale trials of that policy);
 4. report: ``OUT/eval/summary.csv``/``.md``, the plots, a depth GIF, the comparison table on the
-   console, and ``OUT/pipeline.json`` (success rates, whether the policy beat ``straight``, timings).
+   console, and ``OUT/pipeline.json`` (success rates by both definitions, whether the policy beat
+   ``straight`` by the paper's, timings).
 """
 
 from __future__ import annotations
@@ -98,10 +100,15 @@ def load_pipeline_config(path: str | os.PathLike | None, overrides: dict | None 
 
 def sweep_config(e: EvalStage, out_dir: str | Path, policy: str, name: str | None = None,
                  gif: bool = False) -> SweepConfig:
-    """The sweep of one policy with the evaluation stage's settings, into ``out_dir``."""
+    """The sweep of one policy with the evaluation stage's settings, into ``out_dir``.
+
+    ``overwrite`` is on: the stage owns ``out_dir``, and trials of a label flown with another setup
+    there (the model before a retrain, other evaluation settings) are stale.
+    """
     return SweepConfig(policy=policy, name=name, env=list(e.env), preset=e.preset, speeds=list(e.speeds),
                        trials=e.trials, seed=e.seed, out=str(out_dir), num_envs=e.num_envs, workers=e.workers,
-                       threads=e.threads, backend=e.backend, timeout_s=e.timeout_s, gif=gif, plots=False)
+                       threads=e.threads, backend=e.backend, timeout_s=e.timeout_s, gif=gif, plots=False,
+                       overwrite=True)
 
 
 def stage_collect(collect_config: str | None, overrides: dict, data: str | Path, progress: bool = True) -> dict:
@@ -151,24 +158,32 @@ def stage_train(t: TrainStage, data: str | Path, train_dir: Path, threads: int =
 
 def stage_evaluate(e: EvalStage, out_dir: Path, policies: list[tuple[str, str | None]], progress: bool = True,
                    gif_for: int | None = 0) -> None:
-    """Fly each (policy, label) over the same scenes into ``out_dir``; a depth GIF of ``policies[gif_for]``."""
+    """Fly each (policy, label) over the same scenes into ``out_dir``; a depth GIF of ``policies[gif_for]``.
+
+    A policy whose trials in ``out_dir`` were flown with another setup (a retrained checkpoint: its
+    weights hash differs) has them replaced and is flown again.
+    """
     from vitfly.eval.evaluation import depth_gif
     from vitfly.eval.sweep import run_sweep
 
+    identities = []
     for policy, name in policies:
         sweep = sweep_config(e, out_dir, policy, name)
         outcome = run_sweep(sweep, progress=progress)
-        print(f"[evaluate] {sweep.label}: {outcome.flown} trials flown, {outcome.skipped} done before")
+        identities.append(outcome.identity)
+        replaced = f", {outcome.replaced} stale trials (another setup) replaced" if outcome.replaced else ""
+        print(f"[evaluate] {sweep.label}: {outcome.flown} trials flown, {outcome.skipped} done before{replaced}")
     if gif_for is not None:
-        depth_gif(sweep_config(e, out_dir, *policies[gif_for], gif=True))
+        depth_gif(sweep_config(e, out_dir, *policies[gif_for], gif=True), identity=identities[gif_for])
 
 
-def success_by_policy(rows: list[dict]) -> dict[str, float]:
-    """Success rate over all of a policy's trials (every env and speed; equal trials per cell)."""
+def success_by_policy(rows: list[dict], column: str = "success_paper_rate") -> dict[str, float]:
+    """Success rate over all of a policy's trials (every env and speed), by the paper's definition (no
+    collision) or, with ``column="success_strict_rate"``, the strict one (goal reached and no collision)."""
     totals: dict[str, list[float]] = {}
     for r in rows:
         t = totals.setdefault(r["policy"], [0.0, 0.0])
-        t[0] += r["success_rate"] * r["trials"]
+        t[0] += r[column] * r["trials"]
         t[1] += r["trials"]
     return {p: s / n for p, (s, n) in totals.items() if n}
 
@@ -195,18 +210,24 @@ def run_pipeline(cfg: PipelineConfig, progress: bool = True) -> dict:
     timings["report_s"] = time.perf_counter() - t3
     timings["total_s"] = time.perf_counter() - t0
     success = success_by_policy(rows)
+    strict = success_by_policy(rows, "success_strict_rate")
     model = cfg.train.model
     beat = "straight" in success and success.get(model, 0.0) > success["straight"]
+    beat_strict = "straight" in strict and strict.get(model, 0.0) > strict["straight"]
     print_table(rows, title=f"{model} vs {', '.join(cfg.baselines)} ({cfg.eval_dir})")
     line = ", ".join(f"{p} {100 * s:.0f} %" for p, s in sorted(success.items()))
+    line_strict = ", ".join(f"{p} {100 * s:.0f} %" for p, s in sorted(strict.items()))
     verdict = "beats" if beat else "does NOT beat"
-    print(f"success over all trials: {line}; {model} {verdict} straight. Took {timings['total_s']:.0f} s.")
+    print(f"success over all trials (paper: no collision): {line}; {model} {verdict} straight. "
+          f"Strict (goal reached, no collision): {line_strict}. Took {timings['total_s']:.0f} s.")
     outcome = {
         "checkpoint": str(checkpoint),
         "dataset": cfg.data,
         "collected": collected,
-        "success_rate": success,
-        "beats_straight": bool(beat),
+        "success_paper": success,  # no collision (the paper's definition)
+        "success_strict": strict,  # goal reached and no collision
+        "beats_straight": bool(beat),  # by the paper's definition
+        "beats_straight_strict": bool(beat_strict),
         "timings_s": timings,
         "files": {k: str(v) for k, v in files.items()},
         "config": dataclasses.asdict(cfg),

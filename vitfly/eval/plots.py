@@ -2,7 +2,10 @@
 
 - ``rates_vs_speed.png``: collisions per trial and success rate vs speed, one line per policy,
   one column per environment (the paper's collision-rate figure and its success-rate supplement);
-- ``time_in_collision_vs_speed.png``: time in contact per collision vs speed;
+  success twice, each panel naming its definition: the paper's (no collision), then the strict one
+  (goal reached and no collision);
+- ``time_in_collision_vs_speed.png``: time in contact per collision vs speed, as the paper plots it
+  (0 for trials without a collision, mean over all trials), then over colliding trials only;
 - ``energy_vs_speed.png``: energy cost and commanded acceleration vs speed;
 - ``paths_<env>.png``: top-down (x-y) and side (x-z) views of the paths flown in one scene,
   all repeats, all policies, over the scene's obstacles.
@@ -134,11 +137,14 @@ def write_standard_plots(out_dir: str | Path, rows: Sequence[dict], records: Seq
     out = Path(out_dir)
     written = {
         "rates_vs_speed": plot_vs_speed(
-            rows, [("collisions", "collisions per trial", False), ("success_rate", "success rate (%)", True)],
+            rows, [("collisions", "collisions per trial", False),
+                   ("success_paper_rate", "success (%)\npaper: no collision", True),
+                   ("success_strict_rate", "success (%)\nstrict: goal + no collision", True)],
             out / "rates_vs_speed.png", "collision and success rates"),
         "time_in_collision_vs_speed": plot_vs_speed(
-            rows, [("time_in_collision", "time in collision per obstacle (s)", False)],
-            out / "time_in_collision_vs_speed.png"),
+            rows, [("time_in_collision", "time in collision (s)\nper collision, 0 w/o one (paper)", False),
+                   ("time_in_collision_colliding", "time in collision (s)\ncolliding trials only", False)],
+            out / "time_in_collision_vs_speed.png", "time in contact per collision"),
         "energy_vs_speed": plot_vs_speed(
             rows, [("energy_cost", "energy cost (1/s²)", False), ("cmd_acc", "commanded acc. (1/s²)", False)],
             out / "energy_vs_speed.png", "command characteristics"),

@@ -9,21 +9,28 @@ from collections.abc import Sequence
 from pathlib import Path
 
 from vitfly.atomic import write_text
-from vitfly.eval.aggregate import AGGREGATED_METRICS
+from vitfly.eval.aggregate import AGGREGATED_METRICS, RATE_COLUMNS
 
-BASE_COLUMNS = ("policy", "env", "speed", "trials", "success_rate", "reached_goal_rate", "collision_free_rate")
+BASE_COLUMNS = ("policy", "policy_id", "env", "speed", "trials", *RATE_COLUMNS)
 
-# Markdown / console table: (header, column stem or rate column, digits)
+# Markdown / console table: (header, column stem or rate column, digits). Success is shown twice,
+# each header naming its definition (TABLE_LEGEND); the paper's comes first.
 TABLE_COLUMNS: tuple[tuple[str, str, int], ...] = (
-    ("success %", "success_rate", 0),
+    ("success % (paper)", "success_paper_rate", 0),
+    ("success % (strict)", "success_strict_rate", 0),
     ("collisions / trial", "collisions", 2),
-    ("time in collision (s)", "time_in_collision", 2),
+    ("time in collision (s, paper)", "time_in_collision", 2),
+    ("time in collision (s, colliding)", "time_in_collision_colliding", 2),
     ("energy cost (1/s^2)", "energy_cost", 2),
     ("cmd acc (1/s^2)", "cmd_acc", 2),
     ("max lateral dev (m)", "lateral_dev_max", 2),
+    ("time to goal (s)", "time_to_goal", 1),
     ("speed ratio", "speed_ratio", 2),
     ("policy ms / tick", "processing_ms", 2),
 )
+TABLE_LEGEND = ("success (paper) = no collision, the paper's definition; success (strict) = goal reached and no "
+                "collision. Time in collision = contact time / collisions: (paper) 0 for trials without one, mean "
+                "over all trials, as the paper plots it; (colliding) mean over trials with a collision.")
 
 
 def csv_columns() -> list[str]:
@@ -70,9 +77,11 @@ def summary_markdown(rows: Sequence[dict], title: str | None = None) -> str:
     lines.append("| " + " | ".join(header) + " |")
     lines.append("|" + "|".join("---" if i < 2 else "---:" for i in range(len(header))) + "|")
     lines += ["| " + " | ".join(cells) + " |" for cells in body]
+    rates = [f"- {column}: {desc}" for column, (_, desc) in RATE_COLUMNS.items()]
     notes = [f"- {stem}: {desc}" + (f" ({unit})" if unit else "")
              for stem, (_, unit, desc) in AGGREGATED_METRICS.items()]
-    return "\n".join([*lines, "", "Mean ± std over trials. Columns of summary.csv:", *notes, ""])
+    return "\n".join([*lines, "", TABLE_LEGEND, "",
+                      "Rates in %, other cells mean ± std over trials. Columns of summary.csv:", *rates, *notes, ""])
 
 
 def print_table(rows: Sequence[dict], title: str = "closed-loop evaluation") -> None:
@@ -81,12 +90,12 @@ def print_table(rows: Sequence[dict], title: str = "closed-loop evaluation") -> 
     from rich.table import Table
 
     header, body = table_cells(rows)
-    table = Table(title=title)
+    table = Table(title=title, caption=TABLE_LEGEND)
     for i, h in enumerate(header):
         table.add_column(h, justify="left" if i < 2 else "right")
     for cells in body:
         table.add_row(*cells)
-    Console(width=max(Console().width, 170)).print(table)  # logs and pipes get the full table
+    Console(width=max(Console().width, 200)).print(table)  # logs and pipes get the full table
 
 
 def write_reports(out_dir: str | Path, rows: Sequence[dict], title: str | None = None) -> dict[str, Path]:

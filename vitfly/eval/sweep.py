@@ -2,10 +2,17 @@
 
 Trial ``k`` of an env flies the scene with seed ``derive_scene_seed(seed, env, k)`` at every speed,
 so every policy sees the same scenes. The full trial list is fixed by the config; ``--shard i/n``
-takes every n-th trial of it; trials already in ``DIR/trials*.jsonl`` are skipped; the rest are
-grouped by speed into lockstep batches of ``num_envs`` scenes (one batched policy call per
-control tick) and the batches are spread over ``workers`` processes. Each finished trial is
-appended to ``DIR/trials.jsonl`` at once (``vitfly.eval.records``), from whichever process flew it.
+takes every n-th trial of it; the rest are grouped by speed into lockstep batches of ``num_envs``
+scenes (one batched policy call per control tick) and the batches are spread over ``workers``
+processes. Each finished trial is appended to ``DIR/trials.jsonl`` at once (``vitfly.eval.records``),
+from whichever process flew it.
+
+Resuming is keyed by what was flown (``vitfly.eval.fingerprint``): a trial already in
+``DIR/trials*.jsonl`` under the same label *and* the same setup (the policy's content, the sweep
+seed, the preset, the rollout settings) is skipped. If the label's trials in ``DIR`` were flown
+with another setup (a retrained checkpoint under the same name, another ``--seed`` or preset, other
+rates), the sweep refuses with one line saying what differs, unless ``overwrite`` is set: then
+those stale trials are removed and the sweep flies anew.
 """
 
 from __future__ import annotations
@@ -26,8 +33,10 @@ from pathlib import Path
 
 import numpy as np
 
+from vitfly.errors import VitflyError
 from vitfly.eval import records
 from vitfly.eval.config import SweepConfig, parse_shard
+from vitfly.eval.fingerprint import Setup, SweepIdentity, differences, policy_fingerprint, rollout_fingerprint
 from vitfly.eval.metrics import trial_metrics
 from vitfly.eval.policy_source import PolicySource
 
@@ -99,16 +108,30 @@ def rollout_config(cfg: SweepConfig, record_depth: bool = False):
     return RolloutConfig(task=task, record_depth=record_depth)
 
 
+def policy_source(cfg: SweepConfig) -> PolicySource:
+    return PolicySource(cfg.policy, cfg.arch, cfg.backend, cfg.device, cfg.threads)
+
+
+def sweep_identity(cfg: SweepConfig, source: PolicySource | None = None) -> SweepIdentity:
+    """What this sweep flies, hashed (loads a checkpoint's network once; a bad file fails here)."""
+    source = source or policy_source(cfg)
+    return SweepIdentity(policy_fingerprint(source), rollout_fingerprint(rollout_config(cfg)), int(cfg.seed),
+                         cfg.preset)
+
+
 def record_from_result(spec: TrialSpec, label: str, result, cfg: SweepConfig, processing_ms: float,
-                       call_ms: float, batch_size: int) -> records.TrialRecord:
+                       call_ms: float, batch_size: int, setup: Setup) -> records.TrialRecord:
     """One trial record; metrics are computed from the rounded path as stored."""
     log, summary = result.log, result.summary
-    path = records.round_path(log.time, log.position, log.velocity, log.command, log.contact)
-    arr = {k: np.asarray(v) for k, v in path.items()}
+    # the end state (the physics step that ended the trial) is where a goal crossing shows: no tick reaches it
+    path = records.round_path(log.time, log.position, log.velocity, log.command, log.contact,
+                              end_time_s=summary.duration_s, end_position=summary.final_position)
+    arr = {k: np.asarray(v) for k, v in path.items() if k != "end"}
     goal_x = rollout_config(cfg).task.goal_x_m
     m = trial_metrics(arr["time"], arr["position"].reshape(-1, 3), arr["velocity"].reshape(-1, 3),
                       arr["command"].reshape(-1, 3), arr["contact"], desired_speed_mps=spec.speed, goal_x_m=goal_x,
-                      reached_goal=summary.reached_goal, processing_ms=processing_ms)
+                      reached_goal=summary.reached_goal, processing_ms=processing_ms,
+                      end_time_s=path["end"]["time"], end_position=path["end"]["position"])
     extra = {
         "sweep_seed": cfg.seed,
         "policy_source": cfg.policy,
@@ -124,24 +147,32 @@ def record_from_result(spec: TrialSpec, label: str, result, cfg: SweepConfig, pr
     }
     return records.TrialRecord(
         policy=label, env=spec.env, preset=spec.preset, speed=spec.speed, trial=spec.trial,
-        scene_seed=spec.scene_seed, success=m.success, reached_goal=m.reached_goal, end_reason=summary.end_reason,
-        metrics=m.to_dict(), path=path, extra=extra,
+        scene_seed=spec.scene_seed, success_paper=m.success_paper, success_strict=m.success_strict,
+        reached_goal=m.reached_goal, end_reason=summary.end_reason, metrics=m.to_dict(), path=path,
+        setup=setup.to_dict(), setup_id=setup.id, extra=extra,
     )
 
 
 def fly_batch(batch: Sequence[TrialSpec], policy, cfg: SweepConfig, out_file: Path,
-              on_trial: Callable[[records.TrialRecord], None] | None = None) -> int:
-    """Fly one lockstep batch; each trial is appended to ``out_file`` the moment it ends."""
+              on_trial: Callable[[records.TrialRecord], None] | None = None,
+              identity: SweepIdentity | None = None) -> int:
+    """Fly one lockstep batch; each trial is appended to ``out_file`` the moment it ends.
+
+    ``identity`` (what ``policy`` is, see ``sweep_identity``) keys the records; computed from ``cfg``
+    when not given.
+    """
     from vitfly.sim.rollout import run_episodes
     from vitfly.sim.scenes import make_scene
 
+    identity = identity or sweep_identity(cfg)
+    setups = {env: identity.setup(env) for env in {s.env for s in batch}}
     scenes = [make_scene(s.env, s.preset, s.scene_seed) for s in batch]
     timed = TimedPolicy(policy)
 
     def finished(i: int, result) -> None:
         calls = max(int(timed.calls[i]), 1)
         rec = record_from_result(batch[i], cfg.label, result, cfg, float(timed.env_ms[i] / calls),
-                                 float(timed.call_ms[i] / calls), len(batch))
+                                 float(timed.call_ms[i] / calls), len(batch), setups[batch[i].env])
         records.append_record(out_file, rec)
         if on_trial is not None:
             on_trial(rec)
@@ -164,8 +195,8 @@ def _worker_init(source: PolicySource, threads: int) -> None:
     _WORKER["policy"] = source.build()
 
 
-def _worker_fly(batch: list[TrialSpec], cfg: SweepConfig, out_file: str) -> int:
-    return fly_batch(batch, _WORKER["policy"], cfg, Path(out_file))
+def _worker_fly(batch: list[TrialSpec], cfg: SweepConfig, out_file: str, identity: SweepIdentity) -> int:
+    return fly_batch(batch, _WORKER["policy"], cfg, Path(out_file), identity=identity)
 
 
 @dataclass
@@ -176,32 +207,66 @@ class SweepOutcome:
     flown: int
     wall_s: float
     records: list = field(default_factory=list)  # every record in out_dir after the run
+    replaced: int = 0  # trials of this label flown with another setup, removed (overwrite)
+    identity: SweepIdentity | None = None  # what was flown
 
 
-def pending_trials(cfg: SweepConfig) -> tuple[list[TrialSpec], int]:
-    """(trials of this shard still to fly, trials of this shard already finished)."""
+def stale_records(recs: Sequence[records.TrialRecord], label: str,
+                  identity: SweepIdentity) -> list[records.TrialRecord]:
+    """The records of ``label`` flown with another setup than ``identity`` gives for their env."""
+    setups: dict[str, Setup] = {}
+    stale = []
+    for rec in recs:
+        if rec.policy == label:
+            setup = setups.get(rec.env) or setups.setdefault(rec.env, identity.setup(rec.env))
+            if rec.setup_id != setup.id:
+                stale.append(rec)
+    return stale
+
+
+def resolve_conflicts(cfg: SweepConfig, identity: SweepIdentity) -> int:
+    """Refuse (one line) or, with ``cfg.overwrite``, remove the label's trials flown with another setup.
+
+    Returns how many trials were removed.
+    """
+    stale = stale_records(records.read_sweep(cfg.out), cfg.label, identity)
+    if not stale:
+        return 0
+    if not cfg.overwrite:
+        first = stale[0]
+        diff = "; ".join(differences(first.setup, identity.setup(first.env).to_dict())) or "setup"
+        raise VitflyError(
+            f"{cfg.out}: {len(stale)} trials of {cfg.label!r} there were flown with another {diff}; "
+            "evaluate into a new --out, give this run another --name, or pass --overwrite to replace them")
+    stale_ids = {(r.env, r.setup_id) for r in stale}
+    return sum(records.remove_records(p, lambda r: r.policy == cfg.label and (r.env, r.setup_id) in stale_ids)
+               for p in records.iter_trial_files(cfg.out))
+
+
+def pending_trials(cfg: SweepConfig, identity: SweepIdentity) -> tuple[list[TrialSpec], int]:
+    """(trials of this shard still to fly, trials of this shard already finished with this setup)."""
     index, count = parse_shard(cfg.shard)
     mine = select_shard(plan_trials(cfg), index, count)
     done = {r.key for r in records.read_sweep(cfg.out)}
-    todo = [s for s in mine if records.trial_key(cfg.label, s.env, s.speed, s.trial) not in done]
+    setup_ids = {env: identity.setup(env).id for env in cfg.env}
+    todo = [s for s in mine if records.trial_key(cfg.label, setup_ids[s.env], s.env, s.speed, s.trial) not in done]
     return todo, len(mine) - len(todo)
 
 
 def run_sweep(cfg: SweepConfig, progress: bool = True) -> SweepOutcome:
     """Fly every pending trial of ``cfg``; return counts and all records now in ``cfg.out``."""
-    source = PolicySource(cfg.policy, cfg.arch, cfg.backend, cfg.device, cfg.threads)
+    source = policy_source(cfg)
     source.check()
-    todo, skipped = pending_trials(cfg)
+    identity = sweep_identity(cfg, source)  # a bad checkpoint fails here, with one line, before anything is written
+    replaced = resolve_conflicts(cfg, identity)
+    todo, skipped = pending_trials(cfg, identity)
     batches = make_batches(todo, cfg.num_envs)
     policy = None
-    if batches:  # a bad checkpoint fails here, with one line, before anything is written
+    if batches and cfg.workers <= 1:
         import torch
 
         torch.set_num_threads(cfg.threads)
-        if cfg.workers <= 1:
-            policy = source.build()
-        elif not source.is_builtin:
-            source.load_network()
+        policy = source.build()
     out_dir = Path(cfg.out)
     out_dir.mkdir(parents=True, exist_ok=True)
     out_file = out_dir / records.TRIALS_FILE
@@ -209,19 +274,19 @@ def run_sweep(cfg: SweepConfig, progress: bool = True) -> SweepOutcome:
     with _progress(progress, len(todo), f"{cfg.label}: {len(todo)} trials ({skipped} done before)") as advance:
         if policy is not None:
             for batch in batches:
-                fly_batch(batch, policy, cfg, out_file, on_trial=lambda _rec: advance(1))
+                fly_batch(batch, policy, cfg, out_file, on_trial=lambda _rec: advance(1), identity=identity)
         elif batches:
             workers = min(cfg.workers, len(batches))
             # spawn: no forked copies of torch / pybullet state
             with ProcessPoolExecutor(workers, mp_context=get_context("spawn"), initializer=_worker_init,
                                      initargs=(source, cfg.threads)) as pool:
-                futures = {pool.submit(_worker_fly, b, cfg, str(out_file)) for b in batches}
+                futures = {pool.submit(_worker_fly, b, cfg, str(out_file), identity) for b in batches}
                 while futures:
                     finished, futures = wait(futures, return_when=FIRST_COMPLETED)
                     for fut in finished:
                         advance(fut.result())
     return SweepOutcome(out_dir, len(todo) + skipped, skipped, len(todo), time.perf_counter() - t0,
-                        records.read_sweep(out_dir))
+                        records.read_sweep(out_dir), replaced, identity)
 
 
 class _progress:

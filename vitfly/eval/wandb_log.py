@@ -26,9 +26,10 @@ def log_evaluation(project: str, rows: Sequence[dict], images: Mapping[str, Path
         for name, path in images.items():
             payload[name] = wandb.Video(str(path), format="gif") if Path(path).suffix == ".gif" else wandb.Image(
                 str(path))
-        for row in rows:  # scalar series, e.g. success_rate/convnet/spheres at each speed
+        for row in rows:  # scalar series, e.g. success_paper_rate/convnet/spheres at each speed
             key = f"{row['policy']}/{row['env']}"
-            run.summary[f"success_rate/{key}/{row['speed']:g}"] = row["success_rate"]
+            for rate in ("success_paper_rate", "success_strict_rate"):
+                run.summary[f"{rate}/{key}/{row['speed']:g}"] = row[rate]
             run.summary[f"collisions_mean/{key}/{row['speed']:g}"] = row["collisions_mean"]
         run.log(payload)
         return str(run.dir)
