@@ -29,7 +29,7 @@ from rich.table import Table
 from vitfly.eval import records
 from vitfly.eval.config import SweepConfig
 from vitfly.eval.policy_source import PolicySource
-from vitfly.eval.sweep import fly_batch, make_batches, plan_trials
+from vitfly.eval.sweep import fly_batch, make_batches, plan_trials, sweep_identity
 from vitfly.zoo import create_model, save_checkpoint
 
 CASES = [("expert", "-"), ("convnet", "eager"), ("convnet", "onnxruntime"), ("vit_lstm", "eager"),
@@ -53,9 +53,10 @@ def fly(policy: str, backend: str, num_envs: int, args, workdir: Path) -> dict:
                       backend=backend if backend != "-" else "eager", timeout_s=args.timeout, gif=False, plots=False)
     built = PolicySource(cfg.policy, None, cfg.backend, "cpu", 1).build()
     out_file = out / records.TRIALS_FILE
+    identity = sweep_identity(cfg)  # what the records are keyed by (hashes the weights: not timed)
     t0 = time.perf_counter()
     for batch in make_batches(plan_trials(cfg), num_envs):
-        fly_batch(batch, built, cfg, out_file)
+        fly_batch(batch, built, cfg, out_file, identity=identity)
     wall = time.perf_counter() - t0
     flown = records.read_records(out_file)
     sim_s = sum(float(r.path["time"][-1]) + 1.0 / 30.0 for r in flown)

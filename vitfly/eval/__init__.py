@@ -3,6 +3,7 @@
 - ``metrics``: the flight metrics as pure functions of one path;
 - ``learned_policy``: a zoo network flown as a lockstep simulator policy (paper deployment);
 - ``records``: one JSON line per finished trial (crash-safe append, resume, merge);
+- ``fingerprint``: what a trial was flown with (policy content, seed, preset, rollout settings) as hashes;
 - ``sweep``: trial planning, shards, lockstep batches, worker processes (``vitfly evaluate``);
 - ``aggregate``, ``report``, ``plots``, ``wandb_log``: summaries, CSV/Markdown, figures, wandb;
 - ``evaluation``: sweep + reports + GIF as one call;
