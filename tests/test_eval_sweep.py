@@ -194,7 +194,7 @@ def test_trials_are_keyed_by_what_was_flown(tmp_path, capsys):
     _tiny_checkpoint(ckpt, seed=1)
     assert evaluate(out, *args) == 2
     line = one_error_line(capsys)
-    assert "2 trials of 'net' there were flown with another policy (weights" in line and "--overwrite" in line
+    assert "2 trials of 'net' there were flown with another policy content (" in line and "--overwrite" in line
     assert (out / "trials.jsonl").read_bytes() == before
     # ... flown anew with --overwrite: the stale trials are replaced, not mixed with the new ones
     assert evaluate(out, *args, "--overwrite") == 0

@@ -25,8 +25,8 @@ HASH_HEX_DIGITS = 16
 
 # setup field -> how a one-line message names it
 FIELD_NAMES = {
-    "policy_id": "policy (weights, architecture and options, or the expert's config)",
-    "rollout_id": "rollout settings (rates, camera, task, airframe, controller)",
+    "policy_id": "policy content",  # weights and options of a network, or the expert's config
+    "rollout_id": "rollout settings",  # rates, camera, task, airframe, controller
     "sweep_seed": "--seed",
     "preset": "--preset",
     "scene_id": "scene generator settings",
