@@ -5,8 +5,8 @@ import json
 import pytest
 
 from vitfly.cli import main
-from vitfly.eval.ablation import AblationConfig, ablation_markdown, ablation_rows, load_ablation_config
 from vitfly.eval.paper_tables import paper_success
+from vitfly.workflows.ablation import AblationConfig, ablation_markdown, ablation_rows, load_ablation_config
 
 
 def test_paper_numbers_are_the_papers_table():

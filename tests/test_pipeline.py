@@ -6,7 +6,7 @@ import pytest
 import torch
 
 from vitfly.cli import main
-from vitfly.eval.pipeline import load_pipeline_config, success_by_policy
+from vitfly.workflows.pipeline import load_pipeline_config, success_by_policy
 
 TINY = """
 out: {out}
@@ -63,7 +63,7 @@ def test_success_by_policy_weights_cells_by_trials():
 
 def test_evaluate_stage_flies_a_retrained_model_again(tmp_path, capsys):
     from vitfly.eval import records
-    from vitfly.eval.pipeline import EvalStage, stage_evaluate
+    from vitfly.workflows.pipeline import EvalStage, stage_evaluate
     from vitfly.zoo import create_model, save_checkpoint
 
     ckpt, out = tmp_path / "train" / "best.ckpt", tmp_path / "eval"

@@ -19,7 +19,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from vitfly.eval.ablation import load_ablation_config, run_ablation
+    from vitfly.workflows.ablation import load_ablation_config, run_ablation
 
     if not args.no_state:
         raise VitflyError("choose an ablation: --no-state (train with and without the state input)")

@@ -14,7 +14,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from vitfly.eval.pipeline import load_pipeline_config, run_pipeline
+    from vitfly.workflows.pipeline import load_pipeline_config, run_pipeline
 
     cfg = load_pipeline_config(args.config, {"out": args.out, "data": args.data, "wandb_project": args.wandb_project})
     run_pipeline(cfg, progress=not args.no_progress)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 
@@ -14,9 +15,7 @@ def log_evaluation(project: str, rows: Sequence[dict], images: Mapping[str, Path
     the run's directory."""
     import wandb
 
-    from vitfly.training import default_wandb_offline
-
-    default_wandb_offline()  # offline unless the user chose WANDB_MODE
+    os.environ.setdefault("WANDB_MODE", "offline")  # offline unless the user chose a mode
     columns = csv_columns()
     run = wandb.init(project=project, name=run_name, dir=str(out_dir), config=dict(config or {}), job_type="eval",
                      reinit="finish_previous")

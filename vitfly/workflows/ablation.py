@@ -5,7 +5,7 @@ Layout of ``OUT``: ``train/<model>-state`` and ``train/<model>-nostate`` (checkp
 ``eval/`` (one trials.jsonl for all policies, labels ``<model>`` and ``<model>-nostate``, reports
 and plots), ``ablation.csv`` and ``ablation.md`` (the table; success as the paper defines it, a
 trial without a collision). Every stage resumes; a retrained model is flown again (its trials are
-keyed by its weights, see ``vitfly.eval.pipeline.stage_evaluate``).
+keyed by its weights, see ``vitfly.workflows.pipeline.stage_evaluate``).
 """
 
 from __future__ import annotations
@@ -22,7 +22,7 @@ from vitfly.atomic import write_text
 from vitfly.errors import VitflyError
 from vitfly.eval.config import dataclass_from_dict, read_yaml
 from vitfly.eval.paper_tables import ABLATION_ENVS, ABLATION_SPEEDS, MODEL_LABELS, paper_success
-from vitfly.eval.pipeline import EvalStage, TrainStage, stage_collect, stage_evaluate, stage_train
+from vitfly.workflows.pipeline import EvalStage, TrainStage, stage_collect, stage_evaluate, stage_train
 
 
 @dataclass
