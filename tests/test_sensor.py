@@ -129,8 +129,15 @@ def test_legacy_import_records_the_original_camera_and_no_rate(tmp_path):
     import_legacy(tmp_path / "src", tmp_path / "legacy.h5", depth_max_m=10.0)
     with open_trajectories(tmp_path / "legacy.h5") as tf:
         # Flightmare's render (DESIGN.md): 320 x 240 at 70 degrees vertical, 0.3 m above the body, resized to 90 x 60
-        assert tf.sensor["camera"] == {"height": 60, "width": 90, "vertical_fov_deg": 70.0, "source_width": 320,
-                                       "source_height": 240, "mount_offset_m": [0.0, 0.0, 0.3], "max_range_m": 10.0}
+        assert tf.sensor["camera"] == {
+            "height": 60,
+            "width": 90,
+            "vertical_fov_deg": 70.0,
+            "source_width": 320,
+            "source_height": 240,
+            "mount_offset_m": [0.0, 0.0, 0.3],
+            "max_range_m": 10.0,
+        }
         assert tf.sensor["control_hz"] is None  # the original's logging rate is not a known constant
 
 

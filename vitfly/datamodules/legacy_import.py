@@ -60,6 +60,8 @@ def original_camera(depth_max_m: float) -> dict:
         "mount_offset_m": [0.0, 0.0, 0.3],
         "max_range_m": float(depth_max_m),
     }
+
+
 # data.csv columns vitfly keeps (the thrust/body-rate commands ct_cmd, br_cmd_* are not part of schema v1)
 NUMERIC_COLUMNS = (
     "timestamp", "desired_vel",
