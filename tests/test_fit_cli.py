@@ -12,6 +12,7 @@ import torch
 from test_datamodule import write_dataset
 
 from vitfly.cli import main
+from vitfly.datamodules.schema import decode_depth, open_trajectories
 from vitfly.zoo import load_network
 from vitfly.zoo.policy import PolicyModule
 
@@ -178,3 +179,54 @@ def test_train_policy_refuses_to_resume_another_model(data_path, tmp_path):
     train_policy(data_path, "convnet", out, max_epochs=1, batch_size=2, progress_bar=False)
     with pytest.raises(VitflyError, match="holds a run of model 'convnet' .* not 'lstmnet'"):
         train_policy(data_path, "lstmnet", out, max_epochs=2, batch_size=2, progress_bar=False)
+
+
+def direct_val_loss(net, data_path, val_indices) -> float:
+    """Paper eq. 1 worked out without the loader or the policy module: the mean over every step and axis of the
+    held-out trajectories of (output - velocity_cmd / desired_speed)^2, one whole trajectory at a time."""
+    squared, count = 0.0, 0
+    with open_trajectories(data_path) as tf, torch.no_grad():
+        for m in val_indices:
+            rows = tf.read(m, ["depth", "desired_speed", "quat", "velocity_cmd"])
+            depth = torch.from_numpy(decode_depth(rows["depth"]))[None, :, None]
+            speed = torch.from_numpy(rows["desired_speed"])[None, :, None]
+            prediction, _ = net(depth, speed, torch.from_numpy(rows["quat"])[None])
+            target = torch.from_numpy(rows["velocity_cmd"]) / speed[0]
+            squared += float(((prediction[0] - target) ** 2).sum())
+            count += target.numel()
+    return squared / count
+
+
+def test_validate_takes_the_network_from_a_no_state_checkpoint(data_path, tmp_path, capsys):
+    from vitfly.training import train_policy
+    from vitfly.training_cli import build_cli
+    from vitfly.zoo import create_model
+
+    ckpt = train_policy(data_path, "lstmnet", tmp_path / "nostate", use_state=False, max_epochs=1, batch_size=2,
+                        progress_bar=False)  # fmt: skip
+    args = fit_args(data_path, tmp_path / "val", "--ckpt_path", str(ckpt))  # the config: convnet WITH state
+    args[0] = "validate"
+    cli = build_cli(args)
+    assert f"{ckpt} holds lstmnet (use_state=False" in capsys.readouterr().err
+    assert type(cli.model.net).__name__ == "LSTMNet" and cli.model.net.use_state is False
+    got = float(cli.trainer.callback_metrics["val/loss"])
+    val = json.loads((tmp_path / "nostate/split.json").read_text())["val"]
+    assert json.loads((run_dir_of(tmp_path / "val") / "split.json").read_text())["val"] == val  # the ckpt's split
+    net = load_network(ckpt)
+    assert got == pytest.approx(direct_val_loss(net, data_path, val), rel=1e-5)
+    # the same weights fed the state give another loss: validating with state inputs would show
+    with_state = create_model("lstmnet", use_state=True).eval()
+    with_state.load_state_dict(net.state_dict())
+    assert abs(direct_val_loss(with_state, data_path, val) - got) > 1e-4 * got
+
+
+def test_ckpt_path_that_is_not_a_vitfly_checkpoint_is_one_line(data_path, tmp_path, capsys):
+    from vitfly.zoo import create_model
+
+    plain = tmp_path / "plain.pth"
+    torch.save(create_model("convnet").state_dict(), plain)  # an original-project style state dict
+    args = fit_args(data_path, tmp_path / "val", "--ckpt_path", str(plain))
+    args[0] = "validate"
+    assert main(args) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err[-1].startswith("vitfly: error: ") and "plain.pth: checkpoint has no hyper_parameters.model" in err[-1]

@@ -62,8 +62,10 @@ def train_policy(
 
     Writes ``out_dir/checkpoints/{best,last}.ckpt``, ``out_dir/metrics.csv`` and ``out_dir/split.json``.
     An interrupted run resumes from ``out_dir/checkpoints/last.ckpt`` when called again with the same
-    arguments; a finished run returns at once. ``policy_kwargs`` go to PolicyModule (e.g. lr,
-    tbptt_steps), ``data_kwargs`` to TrajectoryDataModule, ``trainer_kwargs`` to lightning.Trainer.
+    arguments; a finished run returns at once. The split is frozen in ``out_dir/split.json``: a later call on
+    a dataset that grew keeps the validation trajectories and trains on the new ones as well.
+    ``policy_kwargs`` go to PolicyModule (e.g. lr, tbptt_steps), ``data_kwargs`` to TrajectoryDataModule,
+    ``trainer_kwargs`` to lightning.Trainer.
     """
     import lightning as L
     from lightning.pytorch.callbacks import ModelCheckpoint, RichProgressBar

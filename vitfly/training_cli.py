@@ -11,11 +11,18 @@ Defaults: CSV logger (TensorBoard or wandb via ``trainer.logger``; wandb stays o
 WANDB_MODE says otherwise), a rich progress bar, checkpoints ``checkpoints/best.ckpt`` (lowest
 ``val/loss``) and ``checkpoints/last.ckpt`` in the run directory (``checkpoint.*`` flags), and the
 train/validation split in ``split.json`` beside them. Resume with ``--ckpt_path .../last.ckpt``.
+
+With ``--ckpt_path`` (any subcommand) the checkpoint decides the network: its architecture,
+``use_state`` and ``model_kwargs`` replace the config's (one line says so when they differ), so a
+no-state checkpoint is validated, tested and predicted without state inputs. Everything else (lr,
+tbptt_steps, ...) comes from the config and flags.
 """
 
 from __future__ import annotations
 
+import sys
 import warnings
+from pathlib import Path
 from typing import Any
 
 from lightning.pytorch.callbacks import ModelCheckpoint, ProgressBar, RichProgressBar
@@ -23,7 +30,9 @@ from lightning.pytorch.cli import LightningArgumentParser, LightningCLI
 
 from vitfly.datamodules.datamodule import TrajectoryDataModule
 from vitfly.training import checkpoint_defaults, default_wandb_offline, finish_wandb
-from vitfly.zoo.policy import PolicyModule, register_policy_classes
+from vitfly.zoo.checkpoint import network_hparams
+from vitfly.zoo.legacy import read_torch_file
+from vitfly.zoo.policy import PolicyModule, policy_class, register_policy_classes
 
 SUBCOMMANDS = ("fit", "validate", "test", "predict")
 RUN_ROOT = "runs"  # where runs go when trainer.default_root_dir is not set
@@ -45,6 +54,41 @@ class VitflyCLI(LightningCLI):
         # the datamodule records use_state with the split; the policy's value is the one that counts
         parser.link_arguments("model.init_args.use_state", "data.use_state")
 
+    def parse_arguments(self, parser: LightningArgumentParser, args: Any) -> None:
+        super().parse_arguments(parser, args)
+        if not hasattr(LightningCLI, "_parse_ckpt_path"):  # Lightning < 2.5 never calls it
+            self._parse_ckpt_path()
+
+    def _parse_ckpt_path(self) -> None:
+        """Take the network (architecture, use_state, model_kwargs) from ``--ckpt_path``; replaces Lightning's
+        version, which copies every stored hyper-parameter over the config."""
+        subcommand = self.config.get("subcommand")
+        ckpt_path = self.config[subcommand].get("ckpt_path") if subcommand else None
+        if not ckpt_path or not Path(ckpt_path).is_file():
+            return  # "last"/"best"/"hpc", or a missing file: Lightning resolves or reports those
+        stored = network_hparams(read_torch_file(ckpt_path), str(ckpt_path))
+        model = self.config[subcommand].model
+        init = model.init_args
+        current = {
+            "model": init.get("model") or _default_model(model.class_path),
+            "use_state": init.get("use_state"),
+            "model_kwargs": dict(init.get("model_kwargs") or {}),
+        }
+        if current == stored:
+            return
+        update = {
+            "class_path": f"{policy_class(stored['model']).__module__}.{stored['model']}",
+            "init_args": {**stored, "model_kwargs": stored["model_kwargs"] or None},
+        }
+        self.config = self.parser.parse_object({subcommand: {"model": update}}, self.config)
+        self.config[subcommand].data.use_state = stored["use_state"]  # the link target, recorded with the split
+        print(
+            f"vitfly {subcommand}: {ckpt_path} holds {stored['model']} (use_state={stored['use_state']}, "
+            f"model_kwargs={stored['model_kwargs']}); using it instead of the config's {current['model']} "
+            f"(use_state={current['use_state']}, model_kwargs={current['model_kwargs']})",
+            file=sys.stderr,
+        )
+
     def before_instantiate_classes(self) -> None:
         config = self.config[self.subcommand] if self.subcommand else self.config
         root = config.trainer.default_root_dir or RUN_ROOT
@@ -61,6 +105,12 @@ class VitflyCLI(LightningCLI):
         if config.get("enable_progress_bar", True) is not False and not has_bar:
             callbacks = [*callbacks, RichProgressBar()]
         return super()._instantiate_trainer(config, callbacks)
+
+
+def _default_model(class_path: str) -> str:
+    """The network a PolicyModule class path trains when ``model`` is not given."""
+    name = class_path.rsplit(".", 1)[-1]
+    return name if name in register_policy_classes() else PolicyModule.default_model
 
 
 def build_cli(argv: list[str], run: bool = True) -> VitflyCLI:

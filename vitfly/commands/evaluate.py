@@ -33,6 +33,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--threads", type=int, help="torch threads per worker")
     parser.add_argument("--backend", choices=("eager", "onnxruntime"), help="inference back end (learned policies)")
     parser.add_argument("--timeout", type=float, dest="timeout_s", help="trial timeout, s (default: scales w/ speed)")
+    parser.add_argument("--camera", nargs="+", metavar="FIELD=VALUE", type=_camera_setting,
+                        help="camera settings (e.g. vertical_fov_deg=70); default: the checkpoint's training camera")
+    parser.add_argument("--control-hz", type=float, help="policy and camera rate, Hz (default: the checkpoint's)")
+    parser.add_argument("--depth-max-m", type=float, help="depth range, m (default: the checkpoint's)")
+    parser.add_argument("--override-sensor", action="store_true", default=None,
+                        help="fly with --camera/--control-hz/--depth-max-m even where they contradict the checkpoint")
     parser.add_argument("--no-gif", action="store_true", help="skip the depth GIF with the command arrow")
     parser.add_argument("--no-plots", action="store_true", help="skip the plots")
     parser.add_argument("--wandb-project", help="also log the summary and plots to this wandb project")
@@ -42,17 +48,40 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
 
 
+def _camera_setting(text: str) -> tuple[str, object]:
+    """FIELD=VALUE, the value read as YAML (numbers, true/false, [0, 0, 0.3])."""
+    import yaml
+
+    field, sep, value = text.partition("=")
+    if not sep or not field:
+        raise argparse.ArgumentTypeError(f"expected FIELD=VALUE, got {text!r}")
+    try:
+        return field.strip(), yaml.safe_load(value)
+    except yaml.YAMLError:
+        raise argparse.ArgumentTypeError(f"{field}: cannot read value {value!r}") from None
+
+
 def run(args: argparse.Namespace) -> int:
     from vitfly.eval.evaluation import merge_into, run_evaluation, write_outputs
+    from vitfly.eval.policy_source import PolicySource
     from vitfly.eval.report import print_table
+    from vitfly.eval.sensor import resolve_sensor
 
     overrides = {k: getattr(args, k) for k in ("policy", "arch", "name", "env", "preset", "speeds", "trials", "seed",
                                               "out", "num_envs", "workers", "shard", "device", "threads",
-                                              "backend", "timeout_s", "wandb_project")}
+                                              "backend", "timeout_s", "wandb_project", "control_hz", "depth_max_m",
+                                              "override_sensor")}
+    overrides["camera"] = dict(args.camera) if args.camera else None
     overrides["gif"] = False if args.no_gif else None
     overrides["plots"] = False if args.no_plots else None
     overrides["overwrite"] = True if args.overwrite else None
     cfg = load_sweep_config(args.config, overrides)
+    if not (args.merge or args.report_only):
+        source = PolicySource(cfg.policy, cfg.arch)
+        source.check()
+        cfg, note = resolve_sensor(cfg, source.trained_sensor(), cfg.policy)
+        if not source.is_builtin:  # the built-in policies fly the defaults or the options, nothing to report
+            print(note)
     if args.merge or args.report_only:
         if args.merge:
             print(f"{cfg.out}: merged {merge_into(cfg.out, args.merge)} new trials")

@@ -2,7 +2,9 @@
 
 Batches follow DESIGN.md's batch contract: B whole trajectories (or ``max_length`` windows of
 them), padded to the longest, with a validity mask and ``traj_index``. The train/validation split
-is by trajectory, seeded, and written to ``split.json`` in the run directory.
+is by trajectory, seeded, drawn once per run and then frozen (``vitfly.datamodules.split``): it is
+written to ``split.json`` in the run directory and stored in the run's checkpoints, and every later
+setup of the run reuses it.
 """
 
 from __future__ import annotations
@@ -13,29 +15,30 @@ import math
 import os
 from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
+from typing import Any
 
 import lightning as L
 import numpy as np
 import torch
+from lightning.pytorch.utilities import rank_zero_info
 from torch.utils.data import DataLoader, Sampler
 
 from vitfly.atomic import write_text
 from vitfly.datamodules.dataset import TrajectoryDataset, collate_trajectories, depth_to_unit_float
 from vitfly.datamodules.schema import open_trajectories
+from vitfly.datamodules.split import (
+    SPLIT_FILE,
+    Split,
+    TrajectoryIds,
+    describe,
+    read_split_file,
+    reuse_split,
+    same_split,
+    split_trajectories,
+)
 from vitfly.errors import VitflyError
 
-SPLIT_FILE = "split.json"
-
-
-def split_trajectories(num_trajectories: int, val_fraction: float, seed: int) -> tuple[list[int], list[int]]:
-    """Seeded split of trajectory indices into (train, val); val gets round(fraction * M), at least 1 if M > 1."""
-    if not 0.0 <= val_fraction < 1.0:
-        raise VitflyError(f"val_fraction: expected a number in [0, 1), got {val_fraction}")
-    order = np.random.default_rng(seed).permutation(num_trajectories)
-    n_val = int(round(val_fraction * num_trajectories))
-    if val_fraction > 0 and num_trajectories > 1:
-        n_val = min(max(n_val, 1), num_trajectories - 1)
-    return sorted(order[n_val:].tolist()), sorted(order[:n_val].tolist())
+__all__ = ["SPLIT_FILE", "LengthBucketBatchSampler", "TrajectoryDataModule", "split_trajectories"]
 
 
 class LengthBucketBatchSampler(Sampler[list[int]]):
@@ -104,9 +107,12 @@ class TrajectoryDataModule(L.LightningDataModule):
     Args:
         data_path: HDF5 dataset (schema v1) to train and validate on.
         batch_size: trajectories (or windows) per batch.
-        val_fraction: share of trajectories held out for validation (split by trajectory).
+        val_fraction: share of trajectories held out for validation (split by trajectory) when a split is drawn.
         split_seed: seed of the split (and of the batch order).
-        split_file: reuse the split recorded in an earlier run's split.json instead of drawing one.
+        split_file: reuse the split recorded in an earlier run's split.json instead of drawing one. Without it, a
+            run reuses its own frozen split: the run directory's split.json, else the one stored in the
+            checkpoint it resumes (``--ckpt_path``); it draws one only when it has neither. Trajectories the
+            dataset gained since a split was frozen go to training.
         max_length: cut trajectories longer than this many steps into windows (None: whole).
         num_workers: DataLoader worker processes (each opens the file itself).
         cache_mb: per-process in-memory LRU cache of trajectories, MiB (0: always read from disk).
@@ -153,38 +159,60 @@ class TrajectoryDataModule(L.LightningDataModule):
         self.predict_path = predict_path
         self.train_indices: list[int] = []
         self.val_indices: list[int] = []
-        self._datasets: dict[str, TrajectoryDataset] = {}
+        # the sensor the dataset was recorded with (plain values; the policy stores it in its checkpoints):
+        # {"depth_max_m": m, "camera": dict of the camera's settings or None, "control_hz": Hz or None}
+        self.sensor: dict[str, Any] | None = None
+        self._split: Split | None = None
+        self._split_saved = False
+        self._ids: TrajectoryIds | None = None
+        self._datasets: dict[str, TrajectoryDataset | None] = {}
 
     # -- split ---------------------------------------------------------------------------------
 
-    def _load_split(self, num_trajectories: int) -> tuple[list[int], list[int]]:
-        path = Path(self.split_file)
-        try:
-            split = json.loads(path.read_text())
-            train, val = [int(i) for i in split["train"]], [int(i) for i in split["val"]]
-        except (OSError, ValueError, KeyError, TypeError) as err:
-            raise VitflyError(f"{path}: not a readable split file with 'train' and 'val' index lists ({err})") from None
-        if split.get("num_trajectories") != num_trajectories:
-            raise VitflyError(
-                f"{path}: field 'num_trajectories' is {split.get('num_trajectories')}, "
-                f"but {self.data_path} holds {num_trajectories} trajectories"
-            )
-        return train, val
+    def _run_dir(self) -> Path | None:
+        trainer = self.trainer
+        if trainer is None:
+            return None
+        return Path(trainer.log_dir or trainer.default_root_dir)
+
+    def _frozen_record(self) -> tuple[dict, str] | None:
+        """(record, where it is) of the split this run must reuse: ``split_file``, else the run dir's split.json."""
+        if self.split_file:
+            return read_split_file(self.split_file), str(self.split_file)
+        run_dir = self._run_dir()
+        if run_dir is not None and (run_dir / SPLIT_FILE).is_file():
+            return read_split_file(run_dir / SPLIT_FILE), str(run_dir / SPLIT_FILE)
+        return None
+
+    def _reuse(self, record: dict, source: str) -> Split:
+        split = reuse_split(record, self._ids, self.data_path, source)
+        rank_zero_info(describe(split, record, self.val_fraction, self.split_seed))
+        return split
+
+    def _apply_split(self, split: Split) -> None:
+        self._split = split
+        self._split_saved = False
+        self.train_indices, self.val_indices = list(split.train), list(split.val)
+        self._datasets["train"] = self._subset(self.train_indices)
+        self._datasets["val"] = self._subset(self.val_indices) if self.val_indices else None
+
+    def _save_split_once(self) -> None:
+        """Write split.json into the run directory when the first loader is asked for: after a checkpoint's split
+        was checked (``load_state_dict`` runs between ``setup`` and the loaders), so a refused resume leaves the
+        run's recorded split as it was."""
+        trainer = self.trainer
+        if not self._split_saved and trainer is not None and trainer.is_global_zero:
+            self.save_split(self._run_dir())
+        self._split_saved = True
 
     def split_record(self) -> dict:
-        with open_trajectories(self.data_path, check_values=False) as tf:
-            seeds = [int(s) for s in tf.table["seed"]]
-        return {
-            "data_path": os.path.abspath(self.data_path),
-            "num_trajectories": len(seeds),
-            "val_fraction": self.val_fraction,
-            "split_seed": self.split_seed,
-            "use_state": self.use_state,
-            "train": self.train_indices,
-            "val": self.val_indices,
-            "train_seeds": [seeds[i] for i in self.train_indices],
-            "val_seeds": [seeds[i] for i in self.val_indices],
-        }
+        """The split as recorded in split.json and in checkpoints (indices, seeds, dataset fingerprint)."""
+        if self._split is None or self._ids is None:
+            raise VitflyError("TrajectoryDataModule.split_record: call setup() first")
+        added = {"added_to_train": list(self._split.added)} if self._split.added else {}
+        return self._split.record(
+            self._ids, self.data_path, self.val_fraction, self.split_seed, use_state=self.use_state, **added
+        )
 
     def save_split(self, directory: str | os.PathLike) -> Path:
         """Write split.json into ``directory`` atomically; returns its path."""
@@ -192,27 +220,51 @@ class TrajectoryDataModule(L.LightningDataModule):
         write_text(out, json.dumps(self.split_record(), indent=1))
         return out
 
+    def state_dict(self) -> dict[str, Any]:
+        """Stored in every checkpoint: the split, so a resume elsewhere (or ``validate``) reuses it."""
+        return {"split": self.split_record()} if self._split is not None else {}
+
+    def load_state_dict(self, state_dict: dict[str, Any]) -> None:
+        """Called after ``setup`` when a run starts from a checkpoint: reuse the split it was trained with."""
+        record = state_dict.get("split") if isinstance(state_dict, dict) else None
+        if not isinstance(record, dict) or self._split is None:
+            return  # a checkpoint from before splits were stored
+        trainer = self.trainer
+        source = f"checkpoint {trainer.ckpt_path}" if trainer is not None and trainer.ckpt_path else "the checkpoint"
+        if self._split.source == "drawn":
+            self._apply_split(self._reuse(record, source))
+            return
+        fitting = trainer is not None and trainer.state.fn == "fit"
+        if fitting and not same_split(reuse_split(record, self._ids, self.data_path, source), self._split):
+            raise VitflyError(
+                f"{self._split.source}: its train/validation split differs from the one {source} was trained "
+                "with; resuming would validate on trained-on trajectories (drop data.split_file, or start a new run)"
+            )
+
     # -- Lightning hooks -----------------------------------------------------------------------
 
     def setup(self, stage: str | None = None) -> None:
         if "train" not in self._datasets:
             with open_trajectories(self.data_path) as tf:  # the one full validation of the file
-                num_trajectories = len(tf)
-            if self.split_file:
-                self.train_indices, self.val_indices = self._load_split(num_trajectories)
+                self._ids = TrajectoryIds.of(tf)
+                self.sensor = dict(tf.sensor)
+            frozen = self._frozen_record()
+            if frozen is not None:
+                split = self._reuse(*frozen)
             else:
-                self.train_indices, self.val_indices = split_trajectories(
-                    num_trajectories, self.val_fraction, self.split_seed
-                )
-            self._datasets["train"] = self._subset(self.train_indices)
-            self._datasets["val"] = self._subset(self.val_indices) if self.val_indices else None
-            trainer = self.trainer
-            if trainer is not None and trainer.is_global_zero:
-                self.save_split(trainer.log_dir or trainer.default_root_dir)
+                split = Split(*split_trajectories(len(self._ids), self.val_fraction, self.split_seed))
+            self._apply_split(split)
         if stage == "test" and self.test_path and "test" not in self._datasets:
             self._datasets["test"] = TrajectoryDataset(self.test_path, max_length=self.max_length)
         if stage == "predict" and self.predict_path and "predict" not in self._datasets:
             self._datasets["predict"] = TrajectoryDataset(self.predict_path, max_length=self.max_length)
+
+    def teardown(self, stage: str | None = None) -> None:
+        """Close this process's file handles (they reopen on the next read), so that the dataset can be appended
+        to once training is over (HDF5 holds a lock while a file is open)."""
+        for dataset in self._datasets.values():
+            if dataset is not None:
+                dataset.close()
 
     def _subset(self, indices: list[int]) -> TrajectoryDataset:
         return TrajectoryDataset(
@@ -242,19 +294,23 @@ class TrajectoryDataModule(L.LightningDataModule):
         return depth_to_unit_float(batch)
 
     def train_dataloader(self) -> DataLoader:
+        self._save_split_once()
         return self._loader(self._datasets["train"], shuffle=True)
 
     def val_dataloader(self) -> DataLoader | list:
+        self._save_split_once()
         val = self._datasets.get("val")
         return [] if val is None else self._loader(val, shuffle=False)
 
     def test_dataloader(self) -> DataLoader:
+        self._save_split_once()
         dataset = self._datasets.get("test") or self._datasets.get("val")
         if dataset is None:
             raise VitflyError("data.test_path: no test dataset given and no validation trajectories to test on")
         return self._loader(dataset, shuffle=False)
 
     def predict_dataloader(self) -> DataLoader:
+        self._save_split_once()
         dataset = self._datasets.get("predict") or self._datasets.get("val")
         if dataset is None:
             raise VitflyError("data.predict_path: no dataset given and no validation trajectories to predict on")

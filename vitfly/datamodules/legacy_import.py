@@ -12,6 +12,12 @@ row (dropped); telemetry rows holding NaN (dropped with their image); folders wh
 counts still disagree, or that are empty or lack data.csv (skipped with a warning and counted).
 Images of another size are resized to 60 x 90 bilinearly (half-pixel centres, no antialiasing, as
 OpenCV's default resize in the original code).
+
+The imported file records the original camera (root attribute ``camera``, see ``original_camera``):
+Flightmare rendered 320 x 240 depth with a 70 degree vertical field of view from 0.3 m above the body
+origin, and ``user_code`` resized it to 90 x 60. It records no ``control_hz``: the original logged a
+row whenever more than 0.03 s had passed since the last one, at whatever rate the simulator's
+callbacks came, so the rate of the rows is not a known constant.
 """
 
 from __future__ import annotations
@@ -38,6 +44,24 @@ from vitfly.errors import VitflyError
 
 LEGACY_ENV = "legacy"
 CSV_NAME = "data.csv"
+
+
+def original_camera(depth_max_m: float) -> dict:
+    """The camera of the original dataset as ``vitfly.sim.camera.CameraConfig`` fields (plain values: this package
+    does not import the simulator): Flightmare's 320 x 240 render at a 70 degree vertical field of view, mounted
+    0.3 m above the body origin, resized to 90 x 60 (DESIGN.md "Frames and units"); depth normalised by
+    ``depth_max_m``."""
+    return {
+        "height": IMAGE_SHAPE[0],
+        "width": IMAGE_SHAPE[1],
+        "vertical_fov_deg": 70.0,
+        "source_width": 320,
+        "source_height": 240,
+        "mount_offset_m": [0.0, 0.0, 0.3],
+        "max_range_m": float(depth_max_m),
+    }
+
+
 # data.csv columns vitfly keeps (the thrust/body-rate commands ct_cmd, br_cmd_* are not part of schema v1)
 NUMERIC_COLUMNS = (
     "timestamp", "desired_vel",
@@ -202,7 +226,8 @@ def import_legacy(
     created = not out.exists()
     config = {"source": "legacy", "source_dir": str(source.resolve()), "folders": names}
     try:
-        with TrajectoryWriter(out, config, depth_max_m=depth_max_m, depth_compression=depth_compression) as writer:
+        camera = original_camera(depth_max_m)
+        with TrajectoryWriter(out, config, depth_max_m, depth_compression, camera=camera) as writer:
             if writer.config.get("folders", names) != names:
                 raise VitflyError(
                     f"{out}: holds an import of another folder list (config 'folders'); choose another --out"

@@ -3,7 +3,8 @@
 HDF5 reads a trajectory one chunk at a time, each read waiting on the disk. Telling the kernel which byte
 ranges come next (``posix_fadvise(WILLNEED)``) lets it fetch them into the page cache in the background,
 while the current batch is being read or trained on. Hints never change what is read; where the platform
-or the HDF5 build cannot give chunk addresses, they are silently skipped.
+or the HDF5 build cannot give chunk addresses, they are silently skipped, and so are datasets that are not
+chunked (contiguous storage, as other tools may write it: there is no chunk index to look up).
 """
 
 from __future__ import annotations
@@ -15,7 +16,8 @@ import numpy as np
 
 
 class ChunkReadahead:
-    """Byte ranges of row ranges of chunked 1-D-indexed datasets, and WILLNEED hints for them.
+    """Byte ranges of row ranges of chunked 1-D-indexed datasets, and WILLNEED hints for them (none for
+    contiguous datasets).
 
     f: the open HDF5 file; path: its path (opened once more, read-only, for the hints).
     """
@@ -25,14 +27,20 @@ class ChunkReadahead:
         self._path = os.fspath(path)
         self._fd: int | None = None
         self._tables: dict[str, tuple[int, np.ndarray, np.ndarray]] = {}
+        self._unchunked: set[str] = set()
         self.enabled = hasattr(os, "posix_fadvise")
 
-    def _table(self, name: str, hi: int) -> tuple[int, np.ndarray, np.ndarray]:
+    def _table(self, name: str, hi: int) -> tuple[int, np.ndarray, np.ndarray] | None:
         """(rows per chunk, byte offset per chunk, byte size per chunk) covering rows [0, hi) at least;
-        offset -1 for chunks not written."""
+        offset -1 for chunks not written. None for a dataset that is not chunked."""
+        if name in self._unchunked:
+            return None
         table = self._tables.get(name)
         if table is None or len(table[1]) * table[0] < hi:  # new, or built before a writer appended rows
             ds = self._file[name]
+            if ds.chunks is None:  # contiguous: nothing to look up, so nothing to hint
+                self._unchunked.add(name)
+                return None
             if self._file.swmr_mode:  # a file a live writer is still appending to
                 ds.refresh()
             rows = ds.chunks[0]
@@ -51,9 +59,10 @@ class ChunkReadahead:
 
     def byte_ranges(self, name: str, lo: int, hi: int) -> list[tuple[int, int]]:
         """(start, stop) file byte ranges holding rows [lo, hi) of dataset ``name``, adjacent chunks merged."""
-        if hi <= lo:
+        table = self._table(name, hi) if hi > lo else None
+        if table is None:
             return []
-        rows, offsets, sizes = self._table(name, hi)
+        rows, offsets, sizes = table
         ks = np.arange(lo // rows, (hi - 1) // rows + 1)
         ks = ks[ks < len(offsets)]
         ks = ks[offsets[ks] >= 0]

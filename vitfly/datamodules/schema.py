@@ -3,7 +3,8 @@
 This module is the single owner of the on-disk format (DESIGN.md "Datasets")::
 
     / attrs: schema="vitfly.trajectories", schema_version=1, image_shape=[60, 90],
-             depth_max_m=10.0, vitfly_version, config (JSON of how it was made)
+             depth_max_m=10.0, vitfly_version, config (JSON of how it was made),
+             optional: camera (JSON of the camera's settings), control_hz (control and camera rate, Hz)
     /depth          uint8   (N, 60, 90)  round(255 * normalised depth); chunked, see DEPTH_STORAGE
     /desired_speed  float32 (N,)         m/s
     /quat           float32 (N, 4)       attitude, body to world, (w, x, y, z)
@@ -14,6 +15,11 @@ This module is the single owner of the on-disk format (DESIGN.md "Datasets")::
     /collision      bool    (N,)         drone in contact with an obstacle
     /traj_offsets   int64   (M+1,)       trajectory m is rows [off[m], off[m+1])
     /trajectories/{env, seed, desired_speed, n_collisions, success}   (M,) each
+
+Readers accept files written by other tools: ``/trajectories/env`` may be any HDF5 string type
+(fixed or variable length, ASCII or UTF-8), integer fields any signed or unsigned integer type, and
+every dataset any storage layout (contiguous, chunked, compressed or not). Appending needs the
+resizable (chunked) layout this writer creates.
 
 Crash safety (a writer killed with SIGKILL at any moment leaves a file holding exactly the
 trajectories whose ``append`` returned): the file is written in HDF5 SWMR mode, whose ordered
@@ -236,6 +242,41 @@ def _show(value: Any) -> str:
     return repr(_attr_str(value) if isinstance(value, bytes) else value)
 
 
+def _table_dtype_ok(found: np.dtype, expected: np.dtype) -> bool:
+    """Whether a /trajectories dataset's dtype reads as the schema's: any HDF5 string type for strings (fixed or
+    variable length, as other tools write them), any integer type for integers."""
+    if expected.kind == "S":
+        return h5py.check_string_dtype(found) is not None
+    if expected.kind in "iu":
+        return found.kind in "iu"
+    return found.kind == expected.kind
+
+
+def _as_str(value: Any) -> str:
+    return value.decode("utf-8", errors="replace") if isinstance(value, bytes | np.bytes_) else str(value)
+
+
+def read_sensor_attrs(f: h5py.File, path: Path) -> dict[str, Any]:
+    """The sensor a dataset was recorded with: ``depth_max_m`` (m), ``camera`` (dict of the camera's settings, or
+    None when the file does not say) and ``control_hz`` (Hz, or None). Plain values; raises VitflyError on a
+    malformed attribute."""
+    camera = f.attrs.get("camera")
+    if camera is not None:
+        try:
+            camera = json.loads(_attr_str(camera))
+        except ValueError:
+            camera = None  # reported below
+        if not isinstance(camera, dict):
+            raise VitflyError(f"{path}: attribute 'camera' must be a JSON object of the camera's settings")
+    rate = f.attrs.get("control_hz")
+    if rate is not None:
+        rate = np.asarray(rate)
+        if rate.shape != () or rate.dtype.kind not in "iuf" or not np.isfinite(rate) or float(rate) <= 0:
+            raise VitflyError(f"{path}: attribute 'control_hz' is {_show(rate)}, expected a positive number of Hz")
+        rate = float(rate)
+    return {"depth_max_m": float(f.attrs["depth_max_m"]), "camera": camera, "control_hz": rate}
+
+
 def validate_file(f: h5py.File, path: Path, *, allow_empty: bool = False) -> int:
     """Check schema, version, image shape, dataset dtypes/shapes and commit records.
 
@@ -287,9 +328,10 @@ def validate_file(f: h5py.File, path: Path, *, allow_empty: bool = False) -> int
         if key not in f:
             raise VitflyError(f"{path}: dataset '/{key}' is missing")
         ds = f[key]
-        if ds.dtype.kind != dtype.kind or ds.ndim != 1 or ds.shape[0] < m:
+        if not _table_dtype_ok(ds.dtype, dtype) or ds.ndim != 1 or ds.shape[0] < m:
+            expected = "a string type" if name == "env" else str(dtype)
             raise VitflyError(
-                f"{path}: dataset '/{key}' must be {dtype} with at least {m} entries, got {ds.dtype} {ds.shape}"
+                f"{path}: dataset '/{key}' must be {expected} with at least {m} entries, got {ds.dtype} {ds.shape}"
             )
     if m == 0 and not allow_empty:
         raise VitflyError(f"{path}: dataset is empty ('/traj_offsets' holds no trajectory)")
@@ -329,6 +371,9 @@ class TrajectoryFile:
             if check_values:
                 check_finite(self._file, self.path, int(self.offsets[-1]))
             self.table = {name: self._file[f"trajectories/{name}"][:m] for name in TRAJ_FIELDS}
+            # env as str whatever string type stored it (fixed-length bytes, variable-length str or bytes)
+            self.table["env"] = np.array([_as_str(v) for v in self.table["env"]], dtype=object)
+            self.sensor = read_sensor_attrs(self._file, self.path)
         except (OSError, RuntimeError, KeyError) as err:
             self._file.close()
             raise VitflyError(f"{self.path}: corrupt HDF5 file, a dataset cannot be read ({err})") from None
@@ -369,7 +414,6 @@ class TrajectoryFile:
     def meta(self, m: int) -> dict[str, Any]:
         """The /trajectories entry of trajectory m (env as str)."""
         row = {name: self.table[name][m] for name in TRAJ_FIELDS}
-        row["env"] = row["env"].decode()
         return {k: (v.item() if isinstance(v, np.generic) else v) for k, v in row.items()}
 
     def __getitem__(self, m: int) -> TrajectoryRecord:
@@ -405,13 +449,29 @@ def open_trajectories(path: str | os.PathLike, *, check_values: bool = True) -> 
 # writer
 
 
-def _create_layout(f: h5py.File, config: dict, depth_max_m: float, depth_compression: str = "none") -> None:
+def sensor_attrs(camera: dict | None, control_hz: float | None) -> dict[str, Any]:
+    """The optional sensor attributes as stored: ``camera`` as a JSON string, ``control_hz`` as a float (Hz)."""
+    attrs: dict[str, Any] = {}
+    if camera is not None:
+        attrs["camera"] = json.dumps(camera, sort_keys=True)
+    if control_hz is not None:
+        if not np.isfinite(control_hz) or control_hz <= 0:
+            raise VitflyError(f"control_hz: expected a positive number of Hz, got {control_hz}")
+        attrs["control_hz"] = float(control_hz)
+    return attrs
+
+
+def _create_layout(
+    f: h5py.File, config: dict, depth_max_m: float, depth_compression: str = "none", sensor: dict | None = None
+) -> None:
     f.attrs["schema"] = SCHEMA_NAME
     f.attrs["schema_version"] = SCHEMA_VERSION
     f.attrs["image_shape"] = np.asarray(IMAGE_SHAPE, dtype=np.int64)
     f.attrs["depth_max_m"] = float(depth_max_m)
     f.attrs["vitfly_version"] = __version__
     f.attrs["config"] = json.dumps(config, sort_keys=True, default=str)
+    for key, value in (sensor or {}).items():
+        f.attrs[key] = value
     for name, (dtype, tail) in ROW_FIELDS.items():
         if name == "depth":
             f.create_dataset(name, (0, *tail), maxshape=(None, *tail), dtype=dtype, **DEPTH_STORAGE[depth_compression])
@@ -435,8 +495,8 @@ def _rebuild_committed(src_path: Path, dst_path: Path) -> None:
         with h5py.File(dst_path, "w", libver="latest") as dst:
             storage = depth_storage_of(src)
             _create_layout(dst, config, float(src.attrs["depth_max_m"]), storage)
-            for key in ("schema", "vitfly_version"):
-                dst.attrs[key] = src.attrs[key]
+            for key, value in src.attrs.items():  # schema, version, sensor attributes, ... as they were
+                dst.attrs[key] = value
             for name in ROW_FIELDS:
                 dst[name].resize(n, axis=0)
             copied = set()
@@ -467,6 +527,8 @@ class TrajectoryWriter:
     of how the data was made) is stored on creation; on reopen the stored one is kept, and
     ``depth_max_m`` must match the file's. ``depth_compression`` ("none" or "gzip", see
     DEPTH_STORAGE) applies to a new file; a reopened file keeps the storage it was created with.
+    ``camera`` (a JSON-able dict of the camera's settings) and ``control_hz`` (Hz), when known, are
+    stored as root attributes of a new file; a reopened file that records them must record the same.
     """
 
     def __init__(
@@ -475,10 +537,13 @@ class TrajectoryWriter:
         config: dict | None = None,
         depth_max_m: float = DEFAULT_DEPTH_MAX_M,
         depth_compression: str = "none",
+        camera: dict | None = None,
+        control_hz: float | None = None,
     ):
         self.path = Path(path)
         self.depth_max_m = float(depth_max_m)
         check_depth_compression(depth_compression)
+        self._sensor = sensor_attrs(camera, control_hz)
         self.path.parent.mkdir(parents=True, exist_ok=True)
         for stale in self.path.parent.glob(f".{self.path.name}.tmp-*"):
             with contextlib.suppress(OSError):
@@ -491,7 +556,7 @@ class TrajectoryWriter:
             tmp = _tmp_path(self.path)
             try:
                 with h5py.File(tmp, "w", libver="latest") as f:
-                    _create_layout(f, config or {}, self.depth_max_m, depth_compression)
+                    _create_layout(f, config or {}, self.depth_max_m, depth_compression, self._sensor)
                 os.replace(tmp, self.path)
             finally:
                 tmp.unlink(missing_ok=True)
@@ -527,6 +592,12 @@ class TrajectoryWriter:
                 raise VitflyError(
                     f"{self.path}: attribute 'depth_max_m' is {stored} m but this writer uses {self.depth_max_m} m"
                 )
+            for key, value in self._sensor.items():
+                if key in f.attrs and _attr_str(f.attrs[key]) != _attr_str(value):
+                    raise VitflyError(
+                        f"{self.path}: attribute {key!r} is {_show(f.attrs[key])} but this writer records {value!r}"
+                    )
+            _check_appendable(f, self.path)
             # rows beyond the last commit belong to an interrupted append: drop them
             off = f["traj_offsets"]
             m, n = off.shape[0] - 1, int(off[-1])
@@ -591,6 +662,24 @@ class TrajectoryWriter:
             self.close()
 
 
+def _check_appendable(f: h5py.File, path: Path) -> None:
+    """Appending needs this writer's layout: resizable datasets and fixed-length env names (SWMR writers cannot
+    grow variable-length heaps safely). Files written by other tools may have neither; they stay readable."""
+    names = [*ROW_FIELDS, "traj_offsets", *(f"trajectories/{n}" for n in TRAJ_FIELDS)]
+    for name in names:
+        if f[name].maxshape[0] is not None:
+            raise VitflyError(
+                f"{path}: dataset '/{name}' has a fixed size (written by another tool?); vitfly reads such files "
+                "but cannot append to them: write to another --out"
+            )
+    env = f["trajectories/env"].dtype
+    if env.kind != "S":
+        raise VitflyError(
+            f"{path}: dataset '/trajectories/env' holds variable-length strings ({env}); vitfly reads such files "
+            "but appends only to fixed-length |S32 names: write to another --out"
+        )
+
+
 def _pid_alive(pid: int) -> bool:
     try:
         os.kill(pid, 0)
@@ -618,5 +707,7 @@ __all__ = [
     "depth_storage_of",
     "encode_depth",
     "open_trajectories",
+    "read_sensor_attrs",
+    "sensor_attrs",
     "validate_file",
 ]

@@ -37,6 +37,11 @@ class SweepConfig:
     threads: int = 1  # torch threads per worker
     backend: str = "eager"  # learned policies: eager PyTorch or ONNX Runtime
     timeout_s: float | None = None  # per trial; default scales with speed (sim's default)
+    # the sensor flown with (vitfly.eval.sensor): None = the checkpoint's training sensor, else vitfly's defaults
+    camera: dict | None = None  # CameraConfig fields, e.g. {vertical_fov_deg: 70}
+    control_hz: float | None = None  # policy and camera rate, Hz
+    depth_max_m: float | None = None  # depth range: normalised depth 1 = this many metres
+    override_sensor: bool = False  # fly with the settings above even where they contradict the checkpoint's
     gif: bool = True  # re-fly one trial with depth frames and write a GIF with the command arrow
     plots: bool = True
     wandb_project: str | None = None  # log the summary and plots to wandb when set
@@ -53,6 +58,10 @@ class SweepConfig:
                 raise VitflyError(f"{source}: field {name!r} must be >= 1, got {getattr(self, name)}")
         if self.backend not in BACKENDS:
             raise VitflyError(f"{source}: field 'backend' is {self.backend!r}; expected one of {', '.join(BACKENDS)}")
+        for name in ("control_hz", "depth_max_m"):
+            value = getattr(self, name)
+            if value is not None and not value > 0:
+                raise VitflyError(f"{source}: field {name!r} must be a positive number, got {value}")
         parse_shard(self.shard, source)
         return self
 

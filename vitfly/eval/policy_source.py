@@ -35,6 +35,15 @@ class PolicySource:
         if not Path(self.spec).is_file():
             raise VitflyError(f"--policy {self.spec}: no such checkpoint file (or use 'expert' / 'straight')")
 
+    def trained_sensor(self) -> dict | None:
+        """The sensor a checkpoint was trained with ({depth_max_m, camera, control_hz}); None for the built-in
+        policies and for checkpoints that do not record one."""
+        if self.is_builtin:
+            return None
+        from vitfly.zoo.checkpoint import load_sensor
+
+        return load_sensor(self.spec)
+
     def load_network(self):
         from vitfly.zoo import load_network
 

@@ -102,10 +102,12 @@ class TimedPolicy:
 
 
 def rollout_config(cfg: SweepConfig, record_depth: bool = False):
+    from vitfly.eval.sensor import flight_sensor
     from vitfly.sim.rollout import RolloutConfig, TaskConfig
 
     task = TaskConfig() if cfg.timeout_s is None else TaskConfig(timeout_s=cfg.timeout_s, timeout_speed_factor=0.0)
-    return RolloutConfig(task=task, record_depth=record_depth)
+    camera, control_hz = flight_sensor(cfg)
+    return RolloutConfig(task=task, record_depth=record_depth, camera=camera, control_hz=control_hz)
 
 
 def policy_source(cfg: SweepConfig) -> PolicySource:

@@ -21,6 +21,7 @@ from torchmetrics import MeanSquaredError, Metric
 
 from vitfly.errors import VitflyError
 from vitfly.zoo.base import DepthPolicyNet
+from vitfly.zoo.checkpoint import SENSOR_KEY, check_sensor, read_sensor, sensor_conflicts
 from vitfly.zoo.layers import state_vector
 from vitfly.zoo.registry import create_model, list_models
 
@@ -214,6 +215,34 @@ class PolicyModule(L.LightningModule):
         factor = lr_factor(progress, hp.warmup_epochs, hp.warmup_start_factor, hp.lr_decay, max_epochs)
         for group in opt.param_groups:
             group["lr"] = hp.lr * factor
+
+    # -- checkpoints: the training sensor travels with the weights --------------------------------
+
+    def on_save_checkpoint(self, checkpoint: dict[str, Any]) -> None:
+        """Store the sensor of the training dataset (``datamodule.sensor``: depth range, camera, control rate) as
+        the checkpoint's top-level ``sensor``; without one, keep the sensor of the checkpoint this run started
+        from."""
+        datamodule = getattr(self._trainer, "datamodule", None) if self._trainer is not None else None
+        sensor = getattr(datamodule, "sensor", None) or getattr(self, "_loaded_sensor", None)
+        if sensor:
+            checkpoint[SENSOR_KEY] = check_sensor(sensor, "training dataset")
+
+    def on_load_checkpoint(self, checkpoint: dict[str, Any]) -> None:
+        """Keep the checkpoint's sensor; a resumed fit on data from another sensor is refused (one line)."""
+        source = "checkpoint"
+        trainer = self._trainer
+        if trainer is not None and trainer.ckpt_path:
+            source = str(trainer.ckpt_path)
+        self._loaded_sensor = read_sensor(checkpoint, source)
+        if trainer is None or trainer.state.fn != "fit":
+            return
+        current = getattr(trainer.datamodule, "sensor", None)
+        conflicts = sensor_conflicts(self._loaded_sensor, current)
+        if conflicts:
+            raise VitflyError(
+                f"{source}: trained on data from another sensor than {getattr(trainer.datamodule, 'data_path', '')} "
+                f"({'; '.join(conflicts)}); train a new run on it instead of resuming"
+            )
 
     def configure_optimizers(self):
         hp = self.hparams
