@@ -3,7 +3,9 @@
 This module is the single owner of the on-disk format (DESIGN.md "Datasets")::
 
     / attrs: schema="vitfly.trajectories", schema_version=1, image_shape=[60, 90],
-             depth_max_m=10.0, vitfly_version, config (JSON of how it was made)
+             depth_max_m=10.0, vitfly_version, config (JSON of how it was made),
+             optional: camera (JSON of the camera geometry, vitfly.sim.CameraConfig fields),
+             control_hz (float, the rate of the logged ticks); files without them stay valid
     /depth          uint8   (N, 60, 90)  round(255 * normalised depth); chunked, see DEPTH_STORAGE
     /desired_speed  float32 (N,)         m/s
     /quat           float32 (N, 4)       attitude, body to world, (w, x, y, z)
@@ -52,6 +54,9 @@ SCHEMA_VERSION = 1
 IMAGE_SHAPE = (60, 90)
 DEFAULT_DEPTH_MAX_M = 10.0
 ENV_NAME_BYTES = 32  # fixed-length env names: SWMR writers cannot grow variable-length heaps safely
+# optional root attributes: the sensor the data was recorded with (absent in older or foreign files)
+CAMERA_ATTR = "camera"  # JSON string of the camera config (dataclasses.asdict of vitfly.sim.CameraConfig)
+CONTROL_HZ_ATTR = "control_hz"  # float, Hz: the policy and camera rate of the logged ticks
 
 # per-row datasets: name -> (dtype, trailing shape)
 ROW_FIELDS: dict[str, tuple[np.dtype, tuple[int, ...]]] = {
@@ -405,13 +410,24 @@ def open_trajectories(path: str | os.PathLike, *, check_values: bool = True) -> 
 # writer
 
 
-def _create_layout(f: h5py.File, config: dict, depth_max_m: float, depth_compression: str = "none") -> None:
+def _create_layout(
+    f: h5py.File,
+    config: dict,
+    depth_max_m: float,
+    depth_compression: str = "none",
+    camera: dict | None = None,
+    control_hz: float | None = None,
+) -> None:
     f.attrs["schema"] = SCHEMA_NAME
     f.attrs["schema_version"] = SCHEMA_VERSION
     f.attrs["image_shape"] = np.asarray(IMAGE_SHAPE, dtype=np.int64)
     f.attrs["depth_max_m"] = float(depth_max_m)
     f.attrs["vitfly_version"] = __version__
     f.attrs["config"] = json.dumps(config, sort_keys=True, default=str)
+    if camera is not None:
+        f.attrs[CAMERA_ATTR] = json.dumps(camera, sort_keys=True)
+    if control_hz is not None:
+        f.attrs[CONTROL_HZ_ATTR] = float(control_hz)
     for name, (dtype, tail) in ROW_FIELDS.items():
         if name == "depth":
             f.create_dataset(name, (0, *tail), maxshape=(None, *tail), dtype=dtype, **DEPTH_STORAGE[depth_compression])
@@ -435,8 +451,9 @@ def _rebuild_committed(src_path: Path, dst_path: Path) -> None:
         with h5py.File(dst_path, "w", libver="latest") as dst:
             storage = depth_storage_of(src)
             _create_layout(dst, config, float(src.attrs["depth_max_m"]), storage)
-            for key in ("schema", "vitfly_version"):
-                dst.attrs[key] = src.attrs[key]
+            for key in ("schema", "vitfly_version", CAMERA_ATTR, CONTROL_HZ_ATTR):
+                if key in src.attrs:
+                    dst.attrs[key] = src.attrs[key]
             for name in ROW_FIELDS:
                 dst[name].resize(n, axis=0)
             copied = set()
@@ -467,6 +484,8 @@ class TrajectoryWriter:
     of how the data was made) is stored on creation; on reopen the stored one is kept, and
     ``depth_max_m`` must match the file's. ``depth_compression`` ("none" or "gzip", see
     DEPTH_STORAGE) applies to a new file; a reopened file keeps the storage it was created with.
+    ``camera`` (JSON-able dict) and ``control_hz`` become the CAMERA_ATTR and CONTROL_HZ_ATTR root
+    attributes of a new file.
     """
 
     def __init__(
@@ -475,6 +494,8 @@ class TrajectoryWriter:
         config: dict | None = None,
         depth_max_m: float = DEFAULT_DEPTH_MAX_M,
         depth_compression: str = "none",
+        camera: dict | None = None,
+        control_hz: float | None = None,
     ):
         self.path = Path(path)
         self.depth_max_m = float(depth_max_m)
@@ -491,7 +512,7 @@ class TrajectoryWriter:
             tmp = _tmp_path(self.path)
             try:
                 with h5py.File(tmp, "w", libver="latest") as f:
-                    _create_layout(f, config or {}, self.depth_max_m, depth_compression)
+                    _create_layout(f, config or {}, self.depth_max_m, depth_compression, camera, control_hz)
                 os.replace(tmp, self.path)
             finally:
                 tmp.unlink(missing_ok=True)
