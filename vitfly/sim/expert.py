@@ -221,6 +221,8 @@ def visible_obstacles(position: np.ndarray, obstacles: ExpertObstacles, config: 
     chosen = np.flatnonzero(dist2 <= rng * rng) if rng is not None else np.arange(len(dist2))
     if n_max is not None and len(chosen) > n_max:
         chosen = chosen[np.argsort(dist2[chosen], kind="stable")[:n_max]]
+    if len(chosen) == len(dist2):  # every object (e.g. the window's few walls): no copy
+        return obstacles.spheres
     if obstacles.singletons:
         return obstacles.spheres[chosen]
     selected = np.zeros(len(dist2), dtype=bool)
