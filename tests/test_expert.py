@@ -245,3 +245,33 @@ def test_canopy_on_a_trunk_is_the_same_object_and_boxes_are_objects():
     view = ExpertObstacles.from_scene(sc)
     seen = visible_obstacles(np.array([19.0, -0.5, 3.5]), view, ExpertConfig(max_obstacles=1))
     assert len(seen) == int(np.sum(objects == objects[-1])) and np.all(seen[:, 0] < 20.31)
+
+
+def test_expert_policy_selects_from_the_whole_scene():
+    from vitfly.sim.policies import ExpertPolicy
+    from vitfly.sim.rollout import Observation
+
+    # the tree-and-blocker scene of the test above: given the scene, the policy counts the tree once and
+    # climbs over the blocker; given only the cover spheres (no scenes), each covering sphere counts
+    sc = Scene("trees", "test", 0, BLOCKER, np.array([[11.0, 3.0, 0.0, 9.0, 0.3]]), np.zeros((0, 6)))
+
+    def obs(scenes):
+        return Observation(
+            depth=np.zeros((1, 60, 90), np.float32),
+            desired_speed=np.array([5.0]),
+            quat=np.array([[1.0, 0.0, 0.0, 0.0]]),
+            position=CRUISE[None],
+            velocity=np.zeros((1, 3)),
+            obstacles=[sc.expert_obstacles()],
+            active=np.array([True]),
+            time=np.zeros(1),
+            tick=0,
+            scenes=scenes,
+        )
+
+    policy = ExpertPolicy()
+    policy.reset(1)
+    np.testing.assert_allclose(policy(obs([sc]))[0], unit([8.0, 0.0, 2.5]) * 5.0)
+    policy.reset(1)
+    np.testing.assert_allclose(policy(obs(None))[0], [5.0, 0.0, 0.0])  # the blocker is the 11th+ sphere
+    np.testing.assert_allclose(ExpertPolicy(ALL_SEEING)(obs(None))[0], unit([8.0, 0.0, 2.5]) * 5.0)
