@@ -203,6 +203,10 @@ def test_unknown_config_key_is_one_line_error_and_no_output(tmp_path, capsys):
     assert "camera.max_range" in capsys.readouterr().err
     assert main(["collect", "--config", str(tiny_config_path(tmp_path)), "--out", str(out), "--speeds", "5", "2"]) == 2
     assert "speeds" in capsys.readouterr().err
+    cfg.write_text(TINY + "  vertical_fov_deg: 190\n")
+    assert main(["collect", "--config", str(cfg), "--out", str(out)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "field camera.vertical_fov_deg is 190.0" in err and str(cfg) in err
     cfg.write_text(TINY + "depth_compression: lz4\n")
     assert main(["collect", "--config", str(cfg), "--out", str(out)]) == 2
     err = capsys.readouterr().err.strip()

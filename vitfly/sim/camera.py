@@ -71,17 +71,17 @@ class CameraConfig:
             return math.tan(math.radians(self.horizontal_fov_deg) / 2)
         return self.tan_half_vertical * self.source_width / self.source_height
 
-    def validate(self, source: str = "camera") -> CameraConfig:
-        """Raise ValueError naming the first field out of range."""
+    def validate(self, prefix: str = "") -> CameraConfig:
+        """Raise ValueError naming the first field out of range (``prefix`` goes before its name)."""
         for name in ("vertical_fov_deg", "horizontal_fov_deg"):
             value = getattr(self, name)
             if value is not None and not 0.0 < value < 180.0:
-                raise ValueError(f"{source}: field {name} is {value}; expected 0 < fov < 180 degrees")
+                raise ValueError(f"field {prefix}{name} is {value}; expected 0 < fov < 180 degrees")
         for name in ("height", "width", "source_width", "source_height"):
             if getattr(self, name) < 1:
-                raise ValueError(f"{source}: field {name} is {getattr(self, name)}; expected >= 1 pixel")
+                raise ValueError(f"field {prefix}{name} is {getattr(self, name)}; expected >= 1 pixel")
         if not self.max_range_m > 0:
-            raise ValueError(f"{source}: field max_range_m is {self.max_range_m}; expected > 0 m")
+            raise ValueError(f"field {prefix}max_range_m is {self.max_range_m}; expected > 0 m")
         return self
 
 

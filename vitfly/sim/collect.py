@@ -86,7 +86,7 @@ class CollectConfig:
             raise VitflyError(f"{source}: field log_x_range_m is [{x0}, {x1}]; expected min < max (m)")
         try:
             self.rollout_config().physics_steps_per_tick  # noqa: B018 - validates the rates
-            self.camera.validate("field camera")
+            self.camera.validate("camera.")
         except ValueError as err:
             raise VitflyError(f"{source}: {err}") from None
         return self
