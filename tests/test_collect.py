@@ -1,5 +1,7 @@
 """`vitfly collect` end to end: the file it writes, worker invariance, kill -9 resume, bad config."""
 
+import dataclasses
+import json
 import os
 import signal
 import subprocess
@@ -11,8 +13,9 @@ import numpy as np
 import pytest
 
 from vitfly.cli import main
-from vitfly.datamodules.schema import open_trajectories
-from vitfly.sim.collect import load_collect_config, trajectory_spec
+from vitfly.datamodules.schema import CAMERA_ATTR, CONTROL_HZ_ATTR, open_trajectories
+from vitfly.sim.camera import CameraConfig
+from vitfly.sim.collect import fly_trajectory, load_collect_config, trajectory_spec
 
 TINY = """\
 env: spheres
@@ -67,7 +70,9 @@ def test_collect_writes_the_schema(reference, capsys):
             assert float(meta["desired_speed"]) == pytest.approx(speed, abs=1e-5)
             rec = data[m]
             t = rec.length
-            assert t > 200  # 60 m at <= 7 m/s, 30 Hz
+            assert t > 200  # 58 m at <= 7 m/s, 30 Hz
+            # only the original's window is logged: 2 < x < 60 m
+            assert rec.position[:, 0].min() > 2.0 and rec.position[:, 0].max() < 60.0
             assert rec.depth.shape == (t, 60, 90) and rec.depth.dtype == np.uint8
             assert rec.depth.min() < 255  # obstacles or ground in view
             np.testing.assert_allclose(np.diff(rec.time), 1 / 30, atol=1e-9)
@@ -84,6 +89,38 @@ def test_collect_writes_the_schema(reference, capsys):
             np.testing.assert_allclose(norms, speed, rtol=1e-5)
     with h5py.File(reference, "r") as f:
         assert float(f.attrs["depth_max_m"]) == 10.0
+        # the sensor travels with the data: the default camera (70 deg vertical, 320 x 240 aspect,
+        # 0.3 m above the body origin) and the 30 Hz control rate
+        camera = json.loads(f.attrs[CAMERA_ATTR])
+        assert camera == json.loads(json.dumps(dataclasses.asdict(CameraConfig())))
+        assert camera["vertical_fov_deg"] == 70.0 and camera["mount_offset_m"] == [0.0, 0.0, 0.3]
+        assert float(f.attrs[CONTROL_HZ_ATTR]) == 30.0
+
+
+def test_window_drops_only_ticks_outside_2_to_60_m_and_flight_fields_describe_the_whole_flight():
+    windowed = load_collect_config(None, {"seed": 11, "speeds": [6.5, 7.0]})
+    every = load_collect_config(None, {"seed": 11, "speeds": [6.5, 7.0], "log_every_tick": True})
+    a, b = fly_trajectory(windowed, 1), fly_trajectory(every, 1)
+    # the same flight: every tick starts at the start, x = 0, and runs to the goal
+    assert b.position[0, 0] == 0.0 and b.position[-1, 0] > 59.5
+    keep = (b.position[:, 0] > 2.0) & (b.position[:, 0] < 60.0)
+    assert 0 < keep.sum() < b.length and a.length == keep.sum()
+    for name in ("position", "velocity", "quat", "velocity_cmd", "time", "collision", "depth"):
+        np.testing.assert_array_equal(getattr(a, name), getattr(b, name)[keep], err_msg=name)
+    # per-trajectory fields are the flight's, not the window's
+    assert (a.n_collisions, a.success, a.seed) == (b.n_collisions, b.success, b.seed)
+    # what is dropped is the take-off (x <= 2 m; the goal is crossed between ticks, so no logged x >= 60)
+    assert np.all(b.position[~keep, 0] <= 2.0) and np.all(np.diff(np.flatnonzero(~keep)) == 1)
+
+
+def test_log_every_tick_flag(tiny_config, tmp_path, capsys):
+    out = tmp_path / "every.h5"
+    args = ["collect", "--config", str(tiny_config), "--out", str(out), "--trajectories", "1", "--no-progress"]
+    assert main([*args, "--log-every-tick"]) == 0
+    with open_trajectories(out) as data:
+        rec = data[0]
+        assert rec.position[0, 0] == 0.0 and rec.position[-1, 0] >= 59.0
+        assert data.config["collect"]["log_every_tick"] is True
 
 
 def test_output_is_the_same_whatever_the_workers_and_storage(reference, tiny_config, tmp_path, capsys):
@@ -166,6 +203,10 @@ def test_unknown_config_key_is_one_line_error_and_no_output(tmp_path, capsys):
     assert "camera.max_range" in capsys.readouterr().err
     assert main(["collect", "--config", str(tiny_config_path(tmp_path)), "--out", str(out), "--speeds", "5", "2"]) == 2
     assert "speeds" in capsys.readouterr().err
+    cfg.write_text(TINY + "  vertical_fov_deg: 190\n")
+    assert main(["collect", "--config", str(cfg), "--out", str(out)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "field camera.vertical_fov_deg is 190.0" in err and str(cfg) in err
     cfg.write_text(TINY + "depth_compression: lz4\n")
     assert main(["collect", "--config", str(cfg), "--out", str(out)]) == 2
     err = capsys.readouterr().err.strip()

@@ -108,10 +108,12 @@ def test_logs_are_consistent_and_depth_is_recorded():
     assert log.position[0].tolist() == [0.0, 0.0, 3.5]
     assert res.summary.end_reason == "goal" and log.position[-1, 0] > 59.0
     # the expert's commands have the desired speed once past the take-off ramp (x >= 2, z >= 2),
-    # except when every waypoint is blocked and it falls back to (0.5, 0, 0.25)
+    # except when every waypoint is blocked and it falls back to (0.5, 0, 0.25): mostly while the drone
+    # is inside an inflated obstacle, which the original's 10-nearest expert reaches often in this
+    # scene (27 % of the ticks; 0.7 % for the all-seeing expert)
     cruise = (log.position[:, 0] >= 2) & (log.position[:, 2] >= 2)
     fallback = np.all(log.command == [0.5, 0.0, 0.25], axis=1)
-    assert fallback.mean() < 0.05
+    assert fallback.mean() < 0.35
     np.testing.assert_allclose(np.linalg.norm(log.command[cruise & ~fallback], axis=1), 6.0, rtol=1e-9)
 
 

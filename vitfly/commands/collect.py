@@ -48,11 +48,19 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="depth storage of a new file: none streams several times faster in training, gzip is ~2.8x smaller "
         f"(YAML, else {_DEFAULTS.depth_compression})",
     )
+    parser.add_argument(
+        "--log-every-tick",
+        action="store_true",
+        default=keep,
+        help="write every control tick of each flight; by default only ticks with "
+        f"{_DEFAULTS.log_x_range_m[0]:g} < x < {_DEFAULTS.log_x_range_m[1]:g} m, the original's window "
+        "(YAML log_every_tick / log_x_range_m)",
+    )
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
 
 
 def run(args: argparse.Namespace) -> int:
-    flags = ("trajectories", "speeds", "seed", "workers", "depth_compression")
+    flags = ("trajectories", "speeds", "seed", "workers", "depth_compression", "log_every_tick")
     overrides = {name: getattr(args, name, None) for name in flags}
     config = load_collect_config(getattr(args, "config", None), overrides)
     summary = collect(config, args.out, progress=not args.no_progress)

@@ -83,6 +83,8 @@ TELEMETRY_CHUNK_ROWS = 4096
 DEPTH_CHUNK_FRAMES = 64
 # How /depth is stored (the reader handles both). "none" streams several times faster than "gzip" (gzip
 # inflation bounds the reader; benchmarks/loader_headroom.py) for about 2.8x the file size.
+CAMERA_ATTR = "camera"  # optional root attr: JSON of the camera geometry (vitfly.sim.CameraConfig fields)
+CONTROL_HZ_ATTR = "control_hz"  # optional root attr: float, the rate of the logged ticks (Hz)
 DEPTH_STORAGE: dict[str, dict[str, Any]] = {
     # uncompressed chunks are rewritten in place, so an append may share a chunk with committed rows
     "none": {"chunks": (DEPTH_CHUNK_FRAMES, *IMAGE_SHAPE)},
@@ -260,7 +262,7 @@ def read_sensor_attrs(f: h5py.File, path: Path) -> dict[str, Any]:
     """The sensor a dataset was recorded with: ``depth_max_m`` (m), ``camera`` (dict of the camera's settings, or
     None when the file does not say) and ``control_hz`` (Hz, or None). Plain values; raises VitflyError on a
     malformed attribute."""
-    camera = f.attrs.get("camera")
+    camera = f.attrs.get(CAMERA_ATTR)
     if camera is not None:
         try:
             camera = json.loads(_attr_str(camera))
@@ -268,7 +270,7 @@ def read_sensor_attrs(f: h5py.File, path: Path) -> dict[str, Any]:
             camera = None  # reported below
         if not isinstance(camera, dict):
             raise VitflyError(f"{path}: attribute 'camera' must be a JSON object of the camera's settings")
-    rate = f.attrs.get("control_hz")
+    rate = f.attrs.get(CONTROL_HZ_ATTR)
     if rate is not None:
         rate = np.asarray(rate)
         if rate.shape != () or rate.dtype.kind not in "iuf" or not np.isfinite(rate) or float(rate) <= 0:
@@ -453,11 +455,11 @@ def sensor_attrs(camera: dict | None, control_hz: float | None) -> dict[str, Any
     """The optional sensor attributes as stored: ``camera`` as a JSON string, ``control_hz`` as a float (Hz)."""
     attrs: dict[str, Any] = {}
     if camera is not None:
-        attrs["camera"] = json.dumps(camera, sort_keys=True)
+        attrs[CAMERA_ATTR] = json.dumps(camera, sort_keys=True)
     if control_hz is not None:
         if not np.isfinite(control_hz) or control_hz <= 0:
             raise VitflyError(f"control_hz: expected a positive number of Hz, got {control_hz}")
-        attrs["control_hz"] = float(control_hz)
+        attrs[CONTROL_HZ_ATTR] = float(control_hz)
     return attrs
 
 

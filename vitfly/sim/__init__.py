@@ -11,7 +11,7 @@ Quick tour::
 from vitfly.sim.camera import CameraConfig, DepthCamera
 from vitfly.sim.collision import ContactChecker, signed_distances
 from vitfly.sim.controller import ControllerGains, velocity_control
-from vitfly.sim.expert import ExpertConfig, expert_command
+from vitfly.sim.expert import ExpertConfig, ExpertObstacles, expert_command
 from vitfly.sim.policies import BUILTIN_POLICIES, ExpertPolicy, StraightPolicy, make_builtin_policy
 from vitfly.sim.quadrotor import Airframe, DroneState, QuadrotorFleet
 from vitfly.sim.rollout import (
@@ -39,6 +39,7 @@ __all__ = [
     "EpisodeResult",
     "EpisodeSummary",
     "ExpertConfig",
+    "ExpertObstacles",
     "ExpertPolicy",
     "Observation",
     "PRESETS",

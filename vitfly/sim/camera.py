@@ -1,10 +1,23 @@
 """Forward depth camera by exact ray casting of the scene's primitive shapes (numpy).
 
-The camera sits at the body origin and looks along body +x; it rotates with the body. Image row 0
-is the top (body +z), column 0 the left (body +y); pixels are square, so the vertical field of view
-follows from the horizontal one and the aspect ratio. A pixel holds planar depth (distance along
-the optical axis, as a depth camera reports it) divided by ``max_range_m`` and clipped to 1;
-nothing within range reads 1, and 0 is reserved for "no reading" (dropout).
+The default geometry is the camera the paper's networks were trained with: Flightmare rendered
+320 x 240 depth with a 70 degree field of view (Unity's ``fieldOfView`` is vertical; Flightmare's
+intrinsics agree: f = (height / 2) / tan(fov / 2)), mounted at t_BC = (0, 0, 0.3) m, i.e. 0.3 m
+above the body origin (body frame x forward, y left, z up), looking along body +x; ``user_code``
+then resized it to 90 x 60 with ``cv2.resize`` (INTER_LINEAR). So the 90 x 60 image spans
+2 atan(4/3 tan 35 deg) = 86.1 degrees across and 70 degrees high, and its pixels are not square.
+
+Where each output pixel looks: INTER_LINEAR maps output pixel j's centre to source coordinate
+(j + 0.5) * W_src / W_out (edge-based, i.e. pixel centres at +0.5), and interpolates the two source
+pixels around it, without anti-aliasing. Taken as a sample of the rendered image at that point,
+that is the ray of a pinhole with the same field of view and W_out x H_out pixels, so the source
+resolution drops out and only its aspect ratio matters: this camera casts exactly those rays. The
+one approximation: across a depth edge, the original blended the two neighbouring source pixels
+(1/171 rad apart), where this camera reads the near or the far surface.
+
+Image row 0 is the top (body +z), column 0 the left (body +y). A pixel holds planar depth
+(distance along the optical axis, as a depth camera reports it) divided by ``max_range_m`` and
+clipped to 1; nothing within range reads 1, and 0 is reserved for "no reading" (dropout).
 
 Only shapes that can be seen are cast against: spheres and tree canopies within range and inside
 the view frustum, trunks and walls within range, and the ground plane z = 0 (optional).
@@ -13,6 +26,8 @@ Example::
 
     camera = DepthCamera(CameraConfig())
     depth = camera.render(scene, position=(0, 0, 3.5), rotation=np.eye(3))   # (60, 90) float32
+    # vitfly's camera before it followed the original: 90 x 67.4 degrees, square pixels, at the body origin
+    CameraConfig(horizontal_fov_deg=90.0, vertical_fov_deg=67.38, mount_offset_m=(0.0, 0.0, 0.0))
 """
 
 from __future__ import annotations
@@ -27,15 +42,47 @@ from vitfly.sim.scenes import Scene
 
 @dataclass(frozen=True)
 class CameraConfig:
-    """Depth camera settings (m, degrees)."""
+    """Depth camera settings (m, degrees, pixels); defaults are the paper's Flightmare camera.
 
-    height: int = 60
+    ``horizontal_fov_deg`` None: derived from the vertical one and the aspect ratio of the rendered
+    (source) image, tan(h / 2) = tan(v / 2) * source_width / source_height (a pinhole resized to the
+    output size keeps its fields of view).
+    """
+
+    height: int = 60  # output image, after the resize
     width: int = 90
-    horizontal_fov_deg: float = 90.0
+    vertical_fov_deg: float = 70.0  # of the rendering pinhole (Unity's fov is vertical)
+    horizontal_fov_deg: float | None = None  # None: from vertical_fov_deg and the source aspect
+    source_width: int = 320  # the image Flightmare rendered before the resize (only its aspect matters)
+    source_height: int = 240
+    mount_offset_m: tuple[float, float, float] = (0.0, 0.0, 0.3)  # camera centre in the body frame (t_BC)
     max_range_m: float = 10.0  # normalisation: stored depth = metric depth / max_range_m, clipped to 1
     render_ground: bool = True  # the plane z = 0
     noise_std_m: float = 0.0  # additive Gaussian noise on metric depth (domain randomisation)
     dropout_prob: float = 0.0  # probability that a pixel reads 0 ("no reading")
+
+    @property
+    def tan_half_vertical(self) -> float:
+        return math.tan(math.radians(self.vertical_fov_deg) / 2)
+
+    @property
+    def tan_half_horizontal(self) -> float:
+        if self.horizontal_fov_deg is not None:
+            return math.tan(math.radians(self.horizontal_fov_deg) / 2)
+        return self.tan_half_vertical * self.source_width / self.source_height
+
+    def validate(self, prefix: str = "") -> CameraConfig:
+        """Raise ValueError naming the first field out of range (``prefix`` goes before its name)."""
+        for name in ("vertical_fov_deg", "horizontal_fov_deg"):
+            value = getattr(self, name)
+            if value is not None and not 0.0 < value < 180.0:
+                raise ValueError(f"field {prefix}{name} is {value}; expected 0 < fov < 180 degrees")
+        for name in ("height", "width", "source_width", "source_height"):
+            if getattr(self, name) < 1:
+                raise ValueError(f"field {prefix}{name} is {getattr(self, name)}; expected >= 1 pixel")
+        if not self.max_range_m > 0:
+            raise ValueError(f"field {prefix}max_range_m is {self.max_range_m}; expected > 0 m")
+        return self
 
 
 class DepthCamera:
@@ -46,9 +93,10 @@ class DepthCamera:
     """
 
     def __init__(self, config: CameraConfig | None = None):
-        self.config = cfg = config or CameraConfig()
-        self._tan_h = math.tan(math.radians(cfg.horizontal_fov_deg) / 2)
-        self._tan_v = self._tan_h * cfg.height / cfg.width
+        self.config = cfg = (config or CameraConfig()).validate()
+        self._tan_h = cfg.tan_half_horizontal
+        self._tan_v = cfg.tan_half_vertical
+        self._mount = np.asarray(cfg.mount_offset_m, dtype=np.float64).reshape(3)
         u = self._tan_h * (1.0 - 2.0 * (np.arange(cfg.width) + 0.5) / cfg.width)  # +y (left) at column 0
         v = self._tan_v * (1.0 - 2.0 * (np.arange(cfg.height) + 0.5) / cfg.height)  # +z (up) at row 0
         # body-frame ray directions (1, u, v): unit forward component, so the ray parameter is planar depth
@@ -71,10 +119,15 @@ class DepthCamera:
     def vertical_fov_deg(self) -> float:
         return math.degrees(2 * math.atan(self._tan_v))
 
+    @property
+    def horizontal_fov_deg(self) -> float:
+        return math.degrees(2 * math.atan(self._tan_h))
+
     def metric_depth(self, scene: Scene, position, rotation: np.ndarray) -> np.ndarray:
         """Planar depth in metres (H, W) float64, ``inf`` where nothing is hit within range.
 
-        position: (3,) camera position, world frame (m). rotation: (3, 3) body-to-world matrix.
+        position: (3,) body origin (the drone's position), world frame (m); the camera sits at
+        ``mount_offset_m`` from it in the body frame. rotation: (3, 3) body-to-world matrix.
         """
         depth = self._cast_all(scene, position, rotation)
         depth[depth > self.config.max_range_m] = np.inf
@@ -83,8 +136,8 @@ class DepthCamera:
     def _cast_all(self, scene: Scene, position, rotation: np.ndarray) -> np.ndarray:
         """Nearest hit per pixel (m), ``inf`` for none; hits beyond the range are left in."""
         cfg = self.config
-        pos = np.asarray(position, dtype=np.float64).reshape(3)
         rot = np.asarray(rotation, dtype=np.float64).reshape(3, 3)
+        pos = np.asarray(position, dtype=np.float64).reshape(3) + rot @ self._mount  # camera centre
         size = cfg.height * cfg.width
         # one slot past the image: where the sphere pass sends the pairs that miss
         buffer = np.full(size + 1, np.inf)
@@ -110,7 +163,8 @@ class DepthCamera:
     ) -> np.ndarray:
         """Normalised depth image (H, W) float32 in [0, 1] (see the module docstring).
 
-        ``rng`` drives noise and dropout; it is required when either is configured.
+        position and rotation as :meth:`metric_depth`. ``rng`` drives noise and dropout; it is
+        required when either is configured.
         """
         cfg = self.config
         if cfg.noise_std_m > 0.0 or cfg.dropout_prob > 0.0:

@@ -5,6 +5,14 @@ written in index order, and each one is flown in isolation, so the file is the s
 number of worker processes. Each append is atomic (``vitfly.datamodules.schema.TrajectoryWriter``):
 after a kill -9, running the same collection again skips the committed trajectories and goes on.
 
+Which ticks are written: as the original (``run_competition.py``, ``data_collection_xrange``), only
+those with 2 < x < 60 m (``log_x_range_m``), so the take-off ramp's overridden labels stay out of
+the training data; ``log_every_tick`` keeps every tick. The flight itself is the same either way:
+a trajectory's ``n_collisions`` and ``success`` describe the whole flight, start to end, while the
+per-row ``collision`` flags cover the logged ticks only. A flight that never enters the window
+keeps its last tick, so that trajectory k is still entry k of the file. The file's root attributes
+``camera`` and ``control_hz`` record the sensor geometry and rate.
+
 Example::
 
     cfg = load_collect_config("configs/collect/spheres.yaml", overrides={"trajectories": 10})
@@ -56,6 +64,10 @@ class CollectConfig:
     body_radius_m: float = 0.0
     depth_compression: str = "none"  # "none" streams fastest in training; "gzip" is ~2.8x smaller
     camera: CameraConfig = field(default_factory=CameraConfig)
+    # ticks written: only while log_x_range_m[0] < x < log_x_range_m[1] (m, the original's window),
+    # or every tick of the flight with log_every_tick
+    log_x_range_m: tuple[float, float] = (2.0, 60.0)
+    log_every_tick: bool = False
 
     def validate(self, source: str = "config") -> CollectConfig:
         if self.env not in ENVS:
@@ -69,11 +81,23 @@ class CollectConfig:
         if self.workers < 1:
             raise VitflyError(f"{source}: field workers is {self.workers}; expected >= 1")
         check_depth_compression(self.depth_compression, f"{source}: field depth_compression")
+        x0, x1 = self.log_x_range_m
+        if not x0 < x1:
+            raise VitflyError(f"{source}: field log_x_range_m is [{x0}, {x1}]; expected min < max (m)")
         try:
             self.rollout_config().physics_steps_per_tick  # noqa: B018 - validates the rates
+            self.camera.validate("camera.")
         except ValueError as err:
             raise VitflyError(f"{source}: {err}") from None
         return self
+
+    def logged_ticks(self, x: np.ndarray) -> np.ndarray:
+        """Indices of the ticks to write, given each tick's x position (m)."""
+        if self.log_every_tick:
+            return np.arange(len(x))
+        lo, hi = self.log_x_range_m
+        keep = np.flatnonzero((x > lo) & (x < hi))
+        return keep if len(keep) else np.arange(len(x))[-1:]
 
     def rollout_config(self) -> RolloutConfig:
         return RolloutConfig(
@@ -90,6 +114,8 @@ class CollectConfig:
         for key in ("trajectories", "workers", "depth_compression"):
             d.pop(key)
         d["speeds"] = list(d["speeds"])
+        d["log_x_range_m"] = list(d["log_x_range_m"])
+        d["camera"]["mount_offset_m"] = list(d["camera"]["mount_offset_m"])
         return d
 
 
@@ -122,7 +148,9 @@ def _from_mapping(cls, data: dict, source: str, prefix: str):
             raise VitflyError(f"{source}: unknown key '{prefix}{key}'; expected one of {', '.join(sorted(fields))}")
         default = getattr(cls(), key)
         name = f"{prefix}{key}"
-        if dataclasses.is_dataclass(default):
+        if default is None:  # optional number (e.g. camera.horizontal_fov_deg): null keeps None
+            kwargs[key] = None if value is None else _number(value, float, source, name)
+        elif dataclasses.is_dataclass(default):
             if not isinstance(value, dict):
                 raise VitflyError(f"{source}: field {name} must be a mapping")
             kwargs[key] = _from_mapping(type(default), value, source, f"{name}.")
@@ -167,18 +195,19 @@ def fly_trajectory(config: CollectConfig, index: int) -> TrajectoryRecord:
     scene = make_scene(config.env, config.preset, scene_seed)
     result = run_episodes([scene], [speed], ExpertPolicy(), config.rollout_config())[0]
     log, summary = result.log, result.summary
+    rows = config.logged_ticks(log.position[:, 0])
     return TrajectoryRecord(
-        depth=encode_depth(log.depth),
+        depth=encode_depth(log.depth[rows]),
         desired_speed=speed,
-        quat=log.quat,
-        position=log.position,
-        velocity=log.velocity,
-        velocity_cmd=log.command,
-        time=log.time,
-        collision=log.contact,
+        quat=log.quat[rows],
+        position=log.position[rows],
+        velocity=log.velocity[rows],
+        velocity_cmd=log.command[rows],
+        time=log.time[rows],
+        collision=log.contact[rows],
         env=config.env,
         seed=scene_seed,
-        n_collisions=summary.n_collisions,
+        n_collisions=summary.n_collisions,  # the whole flight, not only the logged ticks
         success=summary.success,
     )
 
@@ -274,7 +303,12 @@ def _collect_into(config: CollectConfig, out: Path, meta: dict, pool, progress: 
 
     frames = _existing_frames(out)
     with TrajectoryWriter(
-        out, config=meta, depth_max_m=config.camera.max_range_m, depth_compression=config.depth_compression
+        out,
+        config=meta,
+        depth_max_m=config.camera.max_range_m,
+        depth_compression=config.depth_compression,
+        camera=dataclasses.asdict(config.camera),
+        control_hz=config.control_hz,
     ) as writer:
         stored = writer.config.get("collect")
         if stored is not None and stored != json.loads(json.dumps(meta["collect"])):

@@ -1,13 +1,24 @@
 """The privileged expert (paper code): pick the free waypoint nearest straight ahead.
 
-Given the obstacle spheres, the expert looks at a 33 x 33 grid of waypoints in the plane
-``lookahead_m`` ahead of the drone (lateral and vertical offsets -8..8 m in 0.5 m steps). A
-waypoint is blocked when the infinite line through the drone and the waypoint passes within
-``radius + inflate_m`` of any obstacle centre that lies 0 < dx < ``lookahead_m`` ahead. The free
-waypoint nearest the grid centre (Manhattan distance on grid indices) gives the direction; ties go
-to the first one in the grid's row-major order, rows running from +8 m up to -8 m down and columns
-from +8 m left to -8 m right (the original drew ties at random). Then the altitude floor and the
-take-off ramp override single components, in that order.
+What it sees (the original's inputs): Flightmare published only the ``max_obstacles`` = 10
+obstacles nearest the drone (``kNObstacles``), ranked by distance and cut at ``max_range_m`` = 10 m
+(``max_detection_range``), behind the drone included, relative to the drone; the original expert
+then used only those 0 < dx < ``lookahead_m`` ahead. Flightmare counted a tree as one object, so
+here the count is per scene object, not per covering sphere: a sphere, a tree (trunk with the
+canopy centred on its top) or a box is one object, and all the covering spheres of a selected
+object reach the expert. An object's distance is the distance from the drone to its anchor: a
+sphere's centre, a trunk's axis (Flightmare zeroed dz for trees: the horizontal distance while the
+drone is below the top), and a box's nearest point (Flightmare had no walls). ``None`` for both
+limits gives vitfly's former all-seeing expert.
+
+Given those, the expert looks at a 33 x 33 grid of waypoints in the plane ``lookahead_m`` ahead
+of the drone (lateral and vertical offsets -8..8 m in 0.5 m steps). A waypoint is blocked when the
+infinite line through the drone and the waypoint passes within ``radius + inflate_m`` of any
+obstacle centre that lies 0 < dx < ``lookahead_m`` ahead. The free waypoint nearest the grid centre
+(Manhattan distance on grid indices) gives the direction; ties go to the first one in the grid's
+row-major order, rows running from +8 m up to -8 m down and columns from +8 m left to -8 m right
+(the original drew ties at random). Then the altitude floor and the take-off ramp override single
+components, in that order.
 
 Example::
 
@@ -15,6 +26,8 @@ Example::
     # (up, left, right, down); the tie goes to "up"
     expert_command(np.array([10.0, 0, 3.5]), np.array([[14.0, 0, 3.5, 1.0]]), 5.0)
     # -> array([4.5808, 0., 2.0041])
+    # a whole scene: the expert picks its 10 nearest objects itself
+    expert_command(position, ExpertObstacles.from_scene(scene), 5.0)
 """
 
 from __future__ import annotations
@@ -23,6 +36,8 @@ from dataclasses import dataclass
 from functools import lru_cache
 
 import numpy as np
+
+from vitfly.sim.scenes import Scene
 
 
 @dataclass(frozen=True)
@@ -38,6 +53,48 @@ class ExpertConfig:
     altitude_gain: float = 2.0
     ramp_distance_m: float = 2.0  # while x < it: vx = max(ramp_min_speed, x / ramp_distance * speed)
     ramp_min_speed_mps: float = 1.0
+    # what Flightmare published: the nearest objects (kNObstacles) within the detection range (m);
+    # None: no limit (both None: the all-seeing expert vitfly used before)
+    max_obstacles: int | None = 10
+    max_range_m: float | None = 10.0
+
+
+ALL_SEEING = ExpertConfig(max_obstacles=None, max_range_m=None)
+
+
+@dataclass(frozen=True, eq=False)
+class ExpertObstacles:
+    """A scene as the expert's sensor sees it: covering spheres grouped by scene object (world frame, m).
+
+    spheres: (K, 4) rows [x, y, z, radius]; object_index: (K,) int, the object each sphere belongs
+    to; anchor_lo, anchor_hi: (M, 3), object m's distance to a point is the distance to the
+    axis-aligned box [anchor_lo[m], anchor_hi[m]] (a point or a vertical segment when lo and hi
+    coincide in some axes). ``singletons`` is true when sphere k is object k, anchored at its centre.
+    """
+
+    spheres: np.ndarray
+    object_index: np.ndarray
+    anchor_lo: np.ndarray
+    anchor_hi: np.ndarray
+    singletons: bool = False
+
+    @classmethod
+    def from_spheres(cls, spheres: np.ndarray) -> ExpertObstacles:
+        """Each sphere one object, anchored at its centre (the spheres scenes, and hand-made lists)."""
+        sph = np.asarray(spheres, dtype=np.float64).reshape(-1, 4)
+        centres = sph[:, :3]
+        return cls(sph, np.arange(len(sph)), centres, centres, singletons=True)
+
+    @classmethod
+    def from_scene(cls, scene: Scene, spacing_m: float = 0.5) -> ExpertObstacles:
+        """The scene's expert cover (:meth:`Scene.expert_obstacles`) with its objects and anchors."""
+        spheres, object_index, lo, hi = scene.expert_objects(spacing_m)
+        if len(scene.cylinders) == 0 and len(scene.boxes) == 0:
+            return cls.from_spheres(spheres)
+        return cls(spheres, object_index, lo, hi)
+
+    def __len__(self) -> int:
+        return len(self.spheres)
 
 
 @lru_cache(maxsize=8)
@@ -146,20 +203,51 @@ def _first_free(rel_obstacles: np.ndarray, config: ExpertConfig) -> int | None:
     return None
 
 
+def visible_obstacles(position: np.ndarray, obstacles: ExpertObstacles, config: ExpertConfig) -> np.ndarray:
+    """(K', 4) world-frame spheres of the objects Flightmare would have published to the expert.
+
+    The ``config.max_obstacles`` objects nearest ``position`` (m, world frame) among those within
+    ``config.max_range_m`` (distance <= range); ties in distance keep the scene order.
+    """
+    n_max, rng = config.max_obstacles, config.max_range_m
+    if (n_max is None and rng is None) or len(obstacles) == 0:
+        return obstacles.spheres
+    pos = np.asarray(position, dtype=np.float64).reshape(3)
+    if obstacles.singletons:
+        delta = obstacles.anchor_lo - pos
+    else:  # nearest point of each anchor box
+        delta = np.clip(pos, obstacles.anchor_lo, obstacles.anchor_hi) - pos
+    dist2 = np.einsum("ij,ij->i", delta, delta)
+    chosen = np.flatnonzero(dist2 <= rng * rng) if rng is not None else np.arange(len(dist2))
+    if n_max is not None and len(chosen) > n_max:
+        chosen = chosen[np.argsort(dist2[chosen], kind="stable")[:n_max]]
+    if len(chosen) == len(dist2):  # every object (e.g. the window's few walls): no copy
+        return obstacles.spheres
+    if obstacles.singletons:
+        return obstacles.spheres[chosen]
+    selected = np.zeros(len(dist2), dtype=bool)
+    selected[chosen] = True
+    return obstacles.spheres[selected[obstacles.object_index]]
+
+
 def expert_command(
     position: np.ndarray,
-    obstacles: np.ndarray,
+    obstacles: np.ndarray | ExpertObstacles,
     desired_speed: float,
     config: ExpertConfig | None = None,
 ) -> np.ndarray:
     """World-frame velocity command (3,) in m/s.
 
-    position: (3,) drone position, world frame (m). obstacles: (K, 4) rows [x, y, z, radius], world
-    frame (m). desired_speed: forward speed to fly at (m/s).
+    position: (3,) drone position, world frame (m). obstacles: the whole scene as the expert's
+    sensor sees it, an :class:`ExpertObstacles` or (K, 4) rows [x, y, z, radius] (each row one
+    object), world frame (m); the expert keeps what ``config`` says Flightmare published (see the
+    module docstring). desired_speed: forward speed to fly at (m/s).
     """
     cfg = config or ExpertConfig()
     pos = np.asarray(position, dtype=np.float64).reshape(3)
-    obs = np.asarray(obstacles, dtype=np.float64).reshape(-1, 4)
+    if not isinstance(obstacles, ExpertObstacles):
+        obstacles = ExpertObstacles.from_spheres(obstacles)
+    obs = visible_obstacles(pos, obstacles, cfg)
     rel = obs - np.concatenate([pos, [0.0]])
     flat = _first_free(rel, cfg)  # = argmin of the Manhattan distance over the free waypoints
     if flat is None:

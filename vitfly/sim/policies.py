@@ -9,25 +9,42 @@ from __future__ import annotations
 import numpy as np
 
 from vitfly.errors import VitflyError
-from vitfly.sim.expert import ExpertConfig, expert_command
+from vitfly.sim.expert import ExpertConfig, ExpertObstacles, expert_command
 from vitfly.sim.rollout import Observation
 
 
 class ExpertPolicy:
-    """The privileged expert (:func:`vitfly.sim.expert.expert_command`) for every active env."""
+    """The privileged expert (:func:`vitfly.sim.expert.expert_command`) for every active env.
+
+    Given the whole scene (``obs.scenes``), it keeps what ``config`` says Flightmare published:
+    by default the 10 nearest objects within 10 m (a tree counts once). Without scenes, each row of
+    ``obs.obstacles`` counts as one object.
+    """
 
     needs_depth = False
 
     def __init__(self, config: ExpertConfig | None = None):
         self.config = config or ExpertConfig()
+        self._views: dict[int, tuple[object, ExpertObstacles]] = {}
 
     def reset(self, num_envs: int) -> None:
-        pass
+        self._views = {}
+
+    def _view(self, obs: Observation, i: int) -> ExpertObstacles:
+        source = obs.scenes[i] if obs.scenes is not None else obs.obstacles[i]
+        cached = self._views.get(i)
+        if cached is None or cached[0] is not source:  # built once per scene (the cover is not free)
+            if obs.scenes is not None:
+                view = ExpertObstacles.from_scene(source)
+            else:
+                view = ExpertObstacles.from_spheres(source)
+            cached = self._views[i] = (source, view)
+        return cached[1]
 
     def __call__(self, obs: Observation) -> np.ndarray:
         out = np.zeros((len(obs.active), 3))
         for i in np.flatnonzero(obs.active):
-            out[i] = expert_command(obs.position[i], obs.obstacles[i], float(obs.desired_speed[i]), self.config)
+            out[i] = expert_command(obs.position[i], self._view(obs, i), float(obs.desired_speed[i]), self.config)
         return out
 
 

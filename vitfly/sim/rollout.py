@@ -85,7 +85,8 @@ class Observation:
     does not need depth); desired_speed: (N,) m/s; quat: (N, 4) (w, x, y, z) body-to-world;
     position: (N, 3) m; velocity: (N, 3) m/s; obstacles: N arrays (K, 4) [x, y, z, radius]
     (privileged: only the expert may use them); active: (N,) bool, false once an env has
-    finished; time: (N,) s since each episode's start; tick: control tick index.
+    finished; time: (N,) s since each episode's start; tick: control tick index; scenes: the N
+    scenes (privileged, for the expert's own obstacle selection), None when not given.
     """
 
     depth: np.ndarray
@@ -97,6 +98,7 @@ class Observation:
     active: np.ndarray
     time: np.ndarray
     tick: int
+    scenes: list[Scene] | None = None
 
 
 @runtime_checkable
@@ -290,6 +292,7 @@ def _observe(states, envs, active, speed_arr, time_s, tick, camera, rngs, needs_
         active=active,
         time=np.full(n, time_s),
         tick=tick,
+        scenes=[e.scene for e in envs],
     )
 
 

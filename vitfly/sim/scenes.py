@@ -134,12 +134,42 @@ class Scene:
         Spheres are exact. Cylinders and boxes are covered by spheres on a grid of ``spacing_m``
         whose radii are just large enough that no point of the shape lies outside the cover.
         """
-        parts = [self.spheres]
-        if len(self.cylinders):
-            parts.append(_cover_cylinders(self.cylinders, spacing_m))
+        return self.expert_objects(spacing_m)[0]
+
+    def expert_objects(self, spacing_m: float = 0.5) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """The expert cover grouped by object: ``(spheres, object_index, anchor_lo, anchor_hi)``.
+
+        spheres (K, 4) as :meth:`expert_obstacles`; object_index (K,) int, the object of each
+        sphere; anchor_lo, anchor_hi (M, 3), the axis-aligned box whose nearest point gives object
+        m's distance (see :mod:`vitfly.sim.expert`). Objects: each sphere not centred on a trunk's
+        top (anchor: its centre), each trunk with the canopies centred on its top (a tree; anchor:
+        the trunk's axis), each box (anchor: the box).
+        """
+        n_sph, n_cyl = len(self.spheres), len(self.cylinders)
+        # a canopy is a sphere centred exactly on a trunk's top centre (the generator writes the same floats)
+        owner = np.full(n_sph, -1)
+        if n_sph and n_cyl:
+            top = self.cylinders[:, [0, 1, 3]]
+            match = np.all(self.spheres[None, :, :3] == top[:, None, :], axis=2)  # (cylinders, spheres)
+            has = match.any(axis=0)
+            owner[has] = np.argmax(match[:, has], axis=0)
+        free = np.flatnonzero(owner < 0)
+        sphere_object = np.empty(n_sph, dtype=np.int64)
+        sphere_object[free] = np.arange(len(free))
+        sphere_object[owner >= 0] = len(free) + owner[owner >= 0]
+        parts, objects = [self.spheres], [sphere_object]
+        lo = [self.spheres[free, :3], self.cylinders[:, [0, 1, 2]], self.boxes[:, :3]]
+        hi = [self.spheres[free, :3], self.cylinders[:, [0, 1, 3]], self.boxes[:, 3:]]
+        if n_cyl:
+            cover, counts = _cover_cylinders(self.cylinders, spacing_m)
+            parts.append(cover)
+            objects.append(len(free) + np.repeat(np.arange(n_cyl), counts))
         if len(self.boxes):
-            parts.append(_cover_boxes(self.boxes, spacing_m))
-        return np.concatenate(parts, axis=0) if len(parts) > 1 else self.spheres.copy()
+            cover, counts = _cover_boxes(self.boxes, spacing_m)
+            parts.append(cover)
+            objects.append(len(free) + n_cyl + np.repeat(np.arange(len(self.boxes)), counts))
+        spheres = np.concatenate(parts, axis=0) if len(parts) > 1 else self.spheres.copy()
+        return spheres, np.concatenate(objects), np.concatenate(lo), np.concatenate(hi)
 
     def to_dict(self) -> dict:
         return {
@@ -273,20 +303,22 @@ def _grid(lo: float, hi: float, spacing: float) -> tuple[np.ndarray, float]:
     return lo + step * (np.arange(n) + 0.5), step
 
 
-def _cover_cylinders(cyl: np.ndarray, spacing: float) -> np.ndarray:
+def _cover_cylinders(cyl: np.ndarray, spacing: float) -> tuple[np.ndarray, np.ndarray]:
+    """Covering spheres of each cylinder, one block per cylinder, and the block sizes."""
     out = []
     for x, y, z0, z1, r in cyl:
         zs, step = _grid(z0, z1, spacing)
         radius = math.hypot(r, step / 2)
         out.append(np.stack([np.full_like(zs, x), np.full_like(zs, y), zs, np.full_like(zs, radius)], axis=1))
-    return np.concatenate(out, axis=0)
+    return np.concatenate(out, axis=0), np.array([len(o) for o in out])
 
 
-def _cover_boxes(boxes: np.ndarray, spacing: float) -> np.ndarray:
+def _cover_boxes(boxes: np.ndarray, spacing: float) -> tuple[np.ndarray, np.ndarray]:
+    """Covering spheres of each box, one block per box, and the block sizes."""
     out = []
     for x0, y0, z0, x1, y1, z1 in boxes:
         (xs, sx), (ys, sy), (zs, sz) = _grid(x0, x1, spacing), _grid(y0, y1, spacing), _grid(z0, z1, spacing)
         radius = 0.5 * math.sqrt(sx * sx + sy * sy + sz * sz)
         gx, gy, gz = np.meshgrid(xs, ys, zs, indexing="ij")
         out.append(np.stack([gx.ravel(), gy.ravel(), gz.ravel(), np.full(gx.size, radius)], axis=1))
-    return np.concatenate(out, axis=0)
+    return np.concatenate(out, axis=0), np.array([len(o) for o in out])
