@@ -95,7 +95,8 @@ def train_policy(
         logger=CSVLogger(save_dir=out_dir, name="", version=""),
         callbacks=callbacks,
         enable_progress_bar=progress_bar,
-        **{"enable_model_summary": False, **(trainer_kwargs or {})},
+        # the datamodule's batch sampler shards itself across DDP ranks (trainer_kwargs strategy="ddp", devices=N)
+        **{"enable_model_summary": False, "use_distributed_sampler": False, **(trainer_kwargs or {})},
     )
     last = ckpt_dir / "last.ckpt"
     if last.exists():

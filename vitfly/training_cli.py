@@ -51,6 +51,8 @@ class VitflyCLI(LightningCLI):
         parser.add_lightning_class_args(ModelCheckpoint, "checkpoint")
         parser.set_defaults({f"checkpoint.{k}": v for k, v in checkpoint_defaults().items()})
         parser.set_defaults({"trainer.logger": DEFAULT_LOGGER})
+        # the datamodule's batch sampler shards itself across DDP ranks; Lightning cannot inject its own
+        parser.set_defaults({"trainer.use_distributed_sampler": False})
         # the datamodule records use_state with the split; the policy's value is the one that counts
         parser.link_arguments("model.init_args.use_state", "data.use_state")
 

@@ -201,8 +201,10 @@ class TrajectoryDataModule(L.LightningDataModule):
         was checked (``load_state_dict`` runs between ``setup`` and the loaders), so a refused resume leaves the
         run's recorded split as it was."""
         trainer = self.trainer
-        if not self._split_saved and trainer is not None and trainer.is_global_zero:
-            self.save_split(self._run_dir())
+        if not self._split_saved and trainer is not None:
+            run_dir = self._run_dir()  # trainer.log_dir is a broadcast under DDP: every rank must ask
+            if trainer.is_global_zero:
+                self.save_split(run_dir)
         self._split_saved = True
 
     def split_record(self) -> dict:

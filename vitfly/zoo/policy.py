@@ -184,26 +184,61 @@ class PolicyModule(L.LightningModule):
         prediction, hidden = self._forward_valid(chunk["depth"], speed, chunk["quat"], hidden, mask)
         return masked_mse(prediction, normalised_target(chunk["velocity_cmd"], speed), mask), hidden
 
+    def rank_chunks(self, batch: Mapping[str, torch.Tensor]) -> Iterator[tuple[dict[str, torch.Tensor] | None, float]]:
+        """(chunk, loss weight) per optimiser step: ``tbptt_chunks`` with weight 1 in a single process.
+
+        Under data parallelism every backward all-reduces the gradients, so every rank must take as many
+        optimiser steps as the rank with the most chunks (a rank that stopped early would leave the others
+        waiting forever): a rank out of chunks yields ``(None, 0.0)``. Weights make the averaged gradient
+        that of the mean over all ranks' valid steps of the chunk, as one process holding every rank's
+        batch would compute it: ``world_size * n_rank / n_all``.
+        """
+        trainer = self.trainer
+        world = trainer.world_size
+        if world == 1:
+            yield from ((chunk, 1.0) for chunk in self.tbptt_chunks(batch))
+            return
+        chunks = list(self.tbptt_chunks(batch))
+        counts = [int(c["mask"].sum()) for c in chunks]  # valid steps per chunk, each >= 1
+        reduce = trainer.strategy.reduce
+        steps = int(reduce(torch.tensor(len(chunks), device=self.device), reduce_op="max"))
+        padded = torch.tensor(counts + [0] * (steps - len(chunks)), dtype=torch.long, device=self.device)
+        totals = reduce(padded, reduce_op="sum").tolist()
+        for i, total in enumerate(totals):
+            yield (chunks[i], world * counts[i] / total) if i < len(chunks) else (None, 0.0)
+
+    def _zero_loss(self) -> torch.Tensor:
+        """A loss with zero gradient for every trainable parameter: a rank without data for this step still
+        joins the other ranks' gradient all-reduce."""
+        return sum(p.sum() for p in self.parameters() if p.requires_grad) * 0.0
+
     def training_step(self, batch: Mapping[str, torch.Tensor], batch_idx: int) -> torch.Tensor:
         opt = self.optimizers()
         hidden = None
         loss_sum = torch.zeros((), device=batch["mask"].device)
         n_valid = 0
-        for chunk in self.tbptt_chunks(batch):
-            loss, hidden = self.chunk_loss(chunk, hidden)
+        for chunk, weight in self.rank_chunks(batch):
+            if chunk is None:  # DDP: this rank's batch has ended, another rank's has not
+                loss = self._zero_loss()
+            else:
+                loss, hidden = self.chunk_loss(chunk, hidden)
             self._set_lr(opt, batch_idx)
             opt.zero_grad()
-            self.manual_backward(loss)
+            self.manual_backward(loss if weight == 1.0 else loss * weight)
             if self.gradient_clip_val:
                 self.clip_gradients(opt, gradient_clip_val=self.gradient_clip_val, gradient_clip_algorithm="norm")
             opt.step()
+            if chunk is None:
+                continue
             hidden = detach_hidden(hidden)  # carried into the next chunk, cut from this chunk's graph
             n = int(chunk["mask"].sum())
             loss_sum += loss.detach() * n
             n_valid += n
         mean_loss = loss_sum / max(n_valid, 1)
-        self.log("train/loss", mean_loss, on_step=True, on_epoch=True, prog_bar=True, batch_size=max(n_valid, 1))
-        self.log("lr", opt.param_groups[0]["lr"], on_step=False, on_epoch=True)
+        # sync_dist: under DDP the mean over every rank's valid steps (a no-op in a single process)
+        n = max(n_valid, 1)
+        self.log("train/loss", mean_loss, on_step=True, on_epoch=True, prog_bar=True, batch_size=n, sync_dist=True)
+        self.log("lr", opt.param_groups[0]["lr"], on_step=False, on_epoch=True, sync_dist=True)
         return mean_loss
 
     def _set_lr(self, opt, batch_idx: int) -> None:
@@ -249,6 +284,21 @@ class PolicyModule(L.LightningModule):
         return torch.optim.Adam(self.net.parameters(), lr=hp.lr * hp.warmup_start_factor, weight_decay=hp.weight_decay)
 
     # -- validation / test / predict ------------------------------------------------------------
+
+    def on_validation_epoch_start(self) -> None:
+        """DDP: average the ranks' batch-norm running statistics before validating.
+
+        Each rank updates them from its own batches, and Lightning's DDP with manual optimisation never
+        broadcasts buffers after the first forward; averaged, every rank validates the same network, the
+        one rank 0 then checkpoints.
+        """
+        if self.trainer.world_size == 1:
+            return
+        reduce = self.trainer.strategy.reduce
+        for module in self.modules():
+            if isinstance(module, nn.modules.batchnorm._BatchNorm) and module.running_mean is not None:
+                module.running_mean.copy_(reduce(module.running_mean.clone(), reduce_op="mean"))
+                module.running_var.copy_(reduce(module.running_var.clone(), reduce_op="mean"))
 
     def _evaluate(self, batch, mse: MeanSquaredError, cos: CommandCosine, prefix: str) -> None:
         prediction, _ = self(batch["depth"], batch["desired_speed"], batch["quat"])
