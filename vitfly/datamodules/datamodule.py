@@ -42,12 +42,23 @@ __all__ = ["SPLIT_FILE", "LengthBucketBatchSampler", "TrajectoryDataModule", "sp
 
 
 class LengthBucketBatchSampler(Sampler[list[int]]):
-    """Batches of items with similar lengths (less padding), shuffled, reproducible per (seed, epoch).
+    """Batches of items with similar lengths (less padding), shuffled, reproducible per (seed, epoch),
+    sharded over ``num_replicas`` data-parallel ranks.
 
-    Items are shuffled, cut into pools of ``batch_size * pool_batches``, sorted by length within a
-    pool (unless ``sort_by_length`` is False), cut into batches, and the batches shuffled.
-    ``prefetch(items)``, if given, is called with the next batch whenever one is handed out, so its
-    data can be read ahead while this one is used.
+    Items are shuffled, cut into pools of ``batch_size * num_replicas * pool_batches``, sorted by length
+    within a pool (unless ``sort_by_length`` is False), and cut into groups of ``batch_size * num_replicas``;
+    the groups are shuffled. Each group is one step: its items are dealt out as ``num_replicas`` consecutive
+    slices, and this rank (``rank``) gets its own slice, so the ranks' batches are disjoint and of similar
+    lengths. Every rank gets the same number of batches, ``ceil(items / (batch_size * num_replicas))``:
+    the last, smaller group is split evenly (batches smaller than ``batch_size``), and if it holds fewer
+    items than there are ranks, its items are repeated to give every rank one (padding by repeating, as
+    torch's DistributedSampler does: at most ``num_replicas - 1`` items a second time per epoch).
+    Every rank must be built with the same lengths, seed and epoch. Without shuffling the groups are
+    consecutive items in order. ``prefetch(items)``, if given, is called with this rank's next batch
+    whenever one is handed out, so its data can be read ahead while this one is used.
+
+    The epoch (``set_epoch``; Lightning calls it at each epoch start through ``.sampler``) seeds the
+    order; a shuffled pass also advances it by one, for loops that never call ``set_epoch``.
     """
 
     def __init__(
@@ -59,39 +70,61 @@ class LengthBucketBatchSampler(Sampler[list[int]]):
         pool_batches: int = 50,
         prefetch: Callable[[list[int]], None] | None = None,
         sort_by_length: bool = True,
+        num_replicas: int = 1,
+        rank: int = 0,
     ):
+        if not 0 <= rank < num_replicas:
+            raise VitflyError(f"rank: expected 0 <= rank < num_replicas ({num_replicas}), got {rank}")
         self.lengths = np.asarray(lengths)
         self.batch_size = batch_size
         self.shuffle = shuffle
         self.seed = seed
-        self.pool = batch_size * pool_batches
+        self.num_replicas = num_replicas
+        self.rank = rank
+        self.group = batch_size * num_replicas  # items per step over all ranks
+        self.pool = self.group * pool_batches
         self.epoch = 0
         self.prefetch = prefetch
         self.sort_by_length = sort_by_length
+
+    @property
+    def sampler(self) -> LengthBucketBatchSampler:
+        """Itself: Lightning's loops call ``batch_sampler.sampler.set_epoch(epoch)`` at each epoch start
+        (never the batch sampler's own), so a resumed run shuffles epoch N as an uninterrupted one does."""
+        return self
 
     def set_epoch(self, epoch: int) -> None:
         self.epoch = epoch
 
     def __len__(self) -> int:
-        return math.ceil(len(self.lengths) / self.batch_size)
+        return math.ceil(len(self.lengths) / self.group)
 
-    def _batches(self) -> list[list[int]]:
+    def _deal(self, items: list[int]) -> list[list[int]]:
+        """One group's items as ``num_replicas`` consecutive slices, sizes differing by at most one."""
+        w = self.num_replicas
+        if len(items) < w:  # fewer items than ranks: repeat them so that every rank has a batch
+            items = [items[i % len(items)] for i in range(w)]
+        bounds = [len(items) * r // w for r in range(w + 1)]
+        return [items[bounds[r] : bounds[r + 1]] for r in range(w)]
+
+    def _groups(self) -> list[list[list[int]]]:
+        """The epoch's steps, each a list of one batch per rank (the same on every rank)."""
         n = len(self.lengths)
         if not self.shuffle:
-            return [list(range(i, min(i + self.batch_size, n))) for i in range(0, n, self.batch_size)]
+            return [self._deal(list(range(i, min(i + self.group, n)))) for i in range(0, n, self.group)]
         rng = np.random.default_rng((self.seed, self.epoch))
         self.epoch += 1  # also advances when nobody calls set_epoch
         order = rng.permutation(n)
-        batches = []
+        groups = []
         for p in range(0, n, self.pool):
             pool = order[p : p + self.pool]
             if self.sort_by_length:
                 pool = pool[np.argsort(self.lengths[pool], kind="stable")]
-            batches.extend(pool[i : i + self.batch_size].tolist() for i in range(0, len(pool), self.batch_size))
-        return [batches[i] for i in rng.permutation(len(batches))]
+            groups.extend(self._deal(pool[i : i + self.group].tolist()) for i in range(0, len(pool), self.group))
+        return [groups[i] for i in rng.permutation(len(groups))]
 
     def __iter__(self) -> Iterator[list[int]]:
-        batches = self._batches()
+        batches = [group[self.rank] for group in self._groups()]
         for k, batch in enumerate(batches):
             if self.prefetch is not None:
                 if k == 0:
@@ -273,7 +306,15 @@ class TrajectoryDataModule(L.LightningDataModule):
             self.data_path, indices, max_length=self.max_length, cache_mb=self.cache_mb, check_values=False
         )
 
+    def _replicas(self) -> dict[str, int]:
+        """This process's data-parallel shard from the Trainer's strategy (``num_replicas``, ``rank``)."""
+        trainer = self.trainer
+        shard = trainer.distributed_sampler_kwargs if trainer is not None else None
+        return {"num_replicas": shard["num_replicas"], "rank": shard["rank"]} if shard else {}
+
     def _loader(self, dataset: TrajectoryDataset, shuffle: bool) -> DataLoader:
+        # under DDP the batch sampler shards itself (Lightning's DistributedSampler cannot be injected into it:
+        # vitfly's Trainers run with use_distributed_sampler=False)
         sampler = LengthBucketBatchSampler(
             dataset.window_lengths(),
             self.batch_size,
@@ -281,6 +322,7 @@ class TrajectoryDataModule(L.LightningDataModule):
             self.split_seed,
             prefetch=dataset.prefetch if self.readahead else None,
             sort_by_length=self.bucket_by_length,
+            **self._replicas(),
         )
         return DataLoader(
             dataset,
