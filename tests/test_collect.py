@@ -89,11 +89,12 @@ def test_collect_writes_the_schema(reference, capsys):
             np.testing.assert_allclose(norms, speed, rtol=1e-5)
     with h5py.File(reference, "r") as f:
         assert float(f.attrs["depth_max_m"]) == 10.0
-        # the sensor travels with the data: the default camera (70 deg vertical, 320 x 240 aspect,
-        # 0.3 m above the body origin) and the 30 Hz control rate
+        # the sensor travels with the data: the default camera (vision/config.yaml's rgb_camera: 100 deg
+        # vertical, 640 x 480 aspect, 0.3 m in front of the body origin) and the 30 Hz control rate
         camera = json.loads(f.attrs[CAMERA_ATTR])
         assert camera == json.loads(json.dumps(dataclasses.asdict(CameraConfig())))
-        assert camera["vertical_fov_deg"] == 70.0 and camera["mount_offset_m"] == [0.0, 0.0, 0.3]
+        assert camera["vertical_fov_deg"] == 100.0 and camera["mount_offset_m"] == [0.3, 0.0, 0.0]
+        assert (camera["source_width"], camera["source_height"]) == (640, 480)
         assert float(f.attrs[CONTROL_HZ_ATTR]) == 30.0
 
 
@@ -207,6 +208,10 @@ def test_unknown_config_key_is_one_line_error_and_no_output(tmp_path, capsys):
     assert main(["collect", "--config", str(cfg), "--out", str(out)]) == 2
     err = capsys.readouterr().err.strip()
     assert len(err.splitlines()) == 1 and "field camera.vertical_fov_deg is 190.0" in err and str(cfg) in err
+    cfg.write_text(TINY + "  preset: agile\n")
+    assert main(["collect", "--config", str(cfg), "--out", str(out)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "field camera.preset is 'agile'" in err and str(cfg) in err
     cfg.write_text(TINY + "depth_compression: lz4\n")
     assert main(["collect", "--config", str(cfg), "--out", str(out)]) == 2
     err = capsys.readouterr().err.strip()
@@ -225,3 +230,15 @@ def test_resume_with_other_settings_is_refused(reference, tiny_config, tmp_path,
     out.write_bytes(reference.read_bytes())
     assert main(["collect", "--config", str(tiny_config), "--out", str(out), "--seed", "12", "--no-progress"]) == 2
     assert "different settings" in capsys.readouterr().err
+
+
+def test_shipped_collect_config_spells_the_default_camera_and_a_preset_selects_the_other(tmp_path):
+    # configs/collect/spheres.yaml writes the default camera out field by field
+    assert load_collect_config("configs/collect/spheres.yaml").camera == CameraConfig()
+    # camera: {preset: camera_config_yaml} is camera_config.yaml's 320 x 240 / 70 deg / 0.3 m-above camera;
+    # fields given beside the preset win
+    path = tmp_path / "alt.yaml"
+    path.write_text(TINY + "  preset: camera_config_yaml\n  noise_std_m: 0.02\n")
+    camera = load_collect_config(path).camera
+    assert camera == CameraConfig(vertical_fov_deg=70.0, source_width=320, source_height=240,
+                                  mount_offset_m=(0.0, 0.0, 0.3), noise_std_m=0.02)  # fmt: skip

@@ -120,6 +120,22 @@ def test_camera_settings_that_do_not_fit_are_one_line():
     assert camera_from_dict(camera_dict(CameraConfig()), "t") == CameraConfig()
 
 
+def test_a_camera_preset_stands_for_its_fields():
+    # --camera preset=camera_config_yaml with nothing recorded: camera_config.yaml's camera is flown
+    cfg, _ = resolve_sensor(cfg_for(camera={"preset": "camera_config_yaml"}), None, "z.pth")
+    assert rollout_config(cfg).camera == CameraConfig.from_preset("camera_config_yaml")
+    # against a checkpoint trained with the default camera its fields contradict, each named
+    trained = {"depth_max_m": 10.0, "camera": camera_dict(CameraConfig()), "control_hz": 30.0}
+    with pytest.raises(VitflyError, match=r"^--camera contradicts .*camera.mount_offset_m: \[0.3, 0.0, 0.0\] vs "
+                                          r"\[0.0, 0.0, 0.3\].*camera.vertical_fov_deg: 100.0 vs 70.0"):  # fmt: skip
+        resolve_sensor(cfg_for(camera={"preset": "camera_config_yaml"}), trained, "x.ckpt")
+    # the default's own name agrees with it
+    cfg, _ = resolve_sensor(cfg_for(camera={"preset": "vision_config_yaml"}), trained, "x.ckpt")
+    assert cfg.camera == camera_dict(CameraConfig())
+    with pytest.raises(VitflyError, match=r"^--camera: field camera.preset is 'agile'; expected one of"):
+        resolve_sensor(cfg_for(camera={"preset": "agile"}), None, "z.pth")
+
+
 def test_legacy_import_records_the_original_camera_and_no_rate(tmp_path):
     from test_import_legacy import make_folder
 
@@ -128,14 +144,15 @@ def test_legacy_import_records_the_original_camera_and_no_rate(tmp_path):
     make_folder(tmp_path / "src", "a", 6, seed=1)
     import_legacy(tmp_path / "src", tmp_path / "legacy.h5", depth_max_m=10.0)
     with open_trajectories(tmp_path / "legacy.h5") as tf:
-        # Flightmare's render (DESIGN.md): 320 x 240 at 70 degrees vertical, 0.3 m above the body, resized to 90 x 60
+        # the camera visionsim_node rendered with (vision/config.yaml's rgb_camera; its camera_config.yaml is
+        # skipped): 640 x 480 at 100 degrees vertical, 0.3 m in front of the body origin, resized to 90 x 60
         assert tf.sensor["camera"] == {
             "height": 60,
             "width": 90,
-            "vertical_fov_deg": 70.0,
-            "source_width": 320,
-            "source_height": 240,
-            "mount_offset_m": [0.0, 0.0, 0.3],
+            "vertical_fov_deg": 100.0,
+            "source_width": 640,
+            "source_height": 480,
+            "mount_offset_m": [0.3, 0.0, 0.0],
             "max_range_m": 10.0,
         }
         assert tf.sensor["control_hz"] is None  # the original's logging rate is not a known constant
@@ -167,6 +184,11 @@ def test_evaluate_flies_with_the_checkpoints_rate_and_says_so(tmp_path, capsys):
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and err[0].startswith("vitfly: error: --control-hz contradicts") and "15.0 vs 30.0" in err[0]
     assert not (tmp_path / "b").exists()
+    # --camera reaches the presets: camera_config.yaml's camera contradicts the checkpoint's (horizontal fov 80)
+    assert main(["evaluate", "--policy", str(ckpt), "--out", str(tmp_path / "b"), "--camera",
+                 "preset=camera_config_yaml", *FAST_EVAL]) == 2  # fmt: skip
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("vitfly: error: --camera contradicts") and "70.0" in err[0]
     assert main(["evaluate", "--policy", str(ckpt), "--out", str(tmp_path / "c"), "--control-hz", "30",
                  "--override-sensor", *FAST_EVAL]) == 0  # fmt: skip
     (rec,) = records.read_sweep(tmp_path / "c")

@@ -34,7 +34,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--backend", choices=("eager", "onnxruntime"), help="inference back end (learned policies)")
     parser.add_argument("--timeout", type=float, dest="timeout_s", help="trial timeout, s (default: scales w/ speed)")
     parser.add_argument("--camera", nargs="+", metavar="FIELD=VALUE", type=_camera_setting,
-                        help="camera settings (e.g. vertical_fov_deg=70); default: the checkpoint's training camera")
+                        help="camera settings (e.g. vertical_fov_deg=70, or preset=camera_config_yaml); "
+                             "default: the checkpoint's training camera")
     parser.add_argument("--control-hz", type=float, help="policy and camera rate, Hz (default: the checkpoint's)")
     parser.add_argument("--depth-max-m", type=float, help="depth range, m (default: the checkpoint's)")
     parser.add_argument("--override-sensor", action="store_true", default=None,

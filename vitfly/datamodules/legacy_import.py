@@ -14,8 +14,8 @@ Images of another size are resized to 60 x 90 bilinearly (half-pixel centres, no
 OpenCV's default resize in the original code).
 
 The imported file records the original camera (root attribute ``camera``, see ``original_camera``):
-Flightmare rendered 320 x 240 depth with a 70 degree vertical field of view from 0.3 m above the body
-origin, and ``user_code`` resized it to 90 x 60. It records no ``control_hz``: the original logged a
+Flightmare rendered 640 x 480 depth with a 100 degree vertical field of view from 0.3 m forward of the
+body origin, and ``user_code`` resized it to 90 x 60. It records no ``control_hz``: the original logged a
 row whenever more than 0.03 s had passed since the last one, at whatever rate the simulator's
 callbacks came, so the rate of the rows is not a known constant.
 """
@@ -48,16 +48,17 @@ CSV_NAME = "data.csv"
 
 def original_camera(depth_max_m: float) -> dict:
     """The camera of the original dataset as ``vitfly.sim.camera.CameraConfig`` fields (plain values: this package
-    does not import the simulator): Flightmare's 320 x 240 render at a 70 degree vertical field of view, mounted
-    0.3 m above the body origin, resized to 90 x 60 (DESIGN.md "Frames and units"); depth normalised by
-    ``depth_max_m``."""
+    does not import the simulator): the camera visionsim_node actually rendered with, ``rgb_camera`` of
+    flightpy/configs/vision/config.yaml (its camera_config.yaml is skipped, see ``vitfly.sim.camera``): a 640 x 480
+    render at a 100 degree vertical field of view, mounted 0.3 m forward of the body origin, resized to 90 x 60;
+    depth normalised by ``depth_max_m``."""
     return {
         "height": IMAGE_SHAPE[0],
         "width": IMAGE_SHAPE[1],
-        "vertical_fov_deg": 70.0,
-        "source_width": 320,
-        "source_height": 240,
-        "mount_offset_m": [0.0, 0.0, 0.3],
+        "vertical_fov_deg": 100.0,
+        "source_width": 640,
+        "source_height": 480,
+        "mount_offset_m": [0.3, 0.0, 0.0],
         "max_range_m": float(depth_max_m),
     }
 

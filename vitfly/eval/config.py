@@ -38,7 +38,7 @@ class SweepConfig:
     backend: str = "eager"  # learned policies: eager PyTorch or ONNX Runtime
     timeout_s: float | None = None  # per trial; default scales with speed (sim's default)
     # the sensor flown with (vitfly.eval.sensor): None = the checkpoint's training sensor, else vitfly's defaults
-    camera: dict | None = None  # CameraConfig fields, e.g. {vertical_fov_deg: 70}
+    camera: dict | None = None  # CameraConfig fields, e.g. {vertical_fov_deg: 70}, or {preset: camera_config_yaml}
     control_hz: float | None = None  # policy and camera rate, Hz
     depth_max_m: float | None = None  # depth range: normalised depth 1 = this many metres
     override_sensor: bool = False  # fly with the settings above even where they contradict the checkpoint's

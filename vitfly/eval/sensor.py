@@ -17,7 +17,7 @@ from typing import Any
 
 from vitfly.errors import VitflyError
 from vitfly.eval.config import SweepConfig
-from vitfly.sim.camera import CameraConfig
+from vitfly.sim.camera import CameraConfig, expand_camera_preset
 from vitfly.zoo.checkpoint import sensor_conflicts
 
 SENSOR_OPTIONS = {"depth_max_m": "--depth-max-m", "control_hz": "--control-hz", "camera": "--camera"}
@@ -29,9 +29,20 @@ def _default_control_hz() -> float:
     return float(RolloutConfig().control_hz)
 
 
+def expand_preset(values: Mapping[str, Any], source: str) -> dict[str, Any]:
+    """The camera fields of ``values``, with ``preset: NAME`` (``vitfly.sim.camera.CAMERA_PRESETS``) replaced by
+    that preset's geometry; the fields given beside it win. An unknown name is one VitflyError line."""
+    try:
+        return expand_camera_preset(values, "camera.")
+    except ValueError as err:
+        raise VitflyError(f"{source}: {err}") from None
+
+
 def camera_from_dict(values: Mapping[str, Any], source: str) -> CameraConfig:
-    """A ``CameraConfig`` from a plain dict of its fields (JSON lists become tuples); the fields not given keep
-    their defaults. An unknown field or a value the camera refuses is one VitflyError line."""
+    """A ``CameraConfig`` from a plain dict of its fields (JSON lists become tuples; ``preset: NAME`` gives that
+    preset's geometry); the fields not given keep their defaults. An unknown field or a value the camera refuses
+    is one VitflyError line."""
+    values = expand_preset(values, source)
     known = [f.name for f in dataclasses.fields(CameraConfig)]
     unknown = sorted(set(values) - set(known))
     if unknown:
@@ -62,8 +73,9 @@ def flight_sensor(cfg: SweepConfig) -> tuple[CameraConfig, float]:
 
 def _explicit(cfg: SweepConfig) -> dict[str, Any]:
     out: dict[str, Any] = {k: getattr(cfg, k) for k in ("depth_max_m", "control_hz") if getattr(cfg, k) is not None}
-    if cfg.camera:
-        out["camera"] = dict(cfg.camera)
+    if cfg.camera:  # a preset stands for its fields, so that they are compared with the checkpoint's
+        camera = expand_preset(cfg.camera, "--camera")
+        out["camera"] = {k: list(v) if isinstance(v, tuple) else v for k, v in camera.items()}
     return out
 
 

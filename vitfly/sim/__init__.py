@@ -8,7 +8,7 @@ Quick tour::
     result.summary.success, result.log.depth.shape    # True, (T, 60, 90)
 """
 
-from vitfly.sim.camera import CameraConfig, DepthCamera
+from vitfly.sim.camera import CAMERA_PRESETS, CameraConfig, DepthCamera
 from vitfly.sim.collision import ContactChecker, signed_distances
 from vitfly.sim.controller import ControllerGains, velocity_control
 from vitfly.sim.expert import ExpertConfig, ExpertObstacles, expert_command
@@ -29,6 +29,7 @@ from vitfly.sim.scenes import ENVS, PRESETS, Scene, load_scene, make_scene, save
 __all__ = [
     "Airframe",
     "BUILTIN_POLICIES",
+    "CAMERA_PRESETS",
     "CameraConfig",
     "ContactChecker",
     "ControllerGains",

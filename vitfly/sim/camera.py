@@ -1,11 +1,23 @@
 """Forward depth camera by exact ray casting of the scene's primitive shapes (numpy).
 
-The default geometry is the camera the paper's networks were trained with: Flightmare rendered
-320 x 240 depth with a 70 degree field of view (Unity's ``fieldOfView`` is vertical; Flightmare's
-intrinsics agree: f = (height / 2) / tan(fov / 2)), mounted at t_BC = (0, 0, 0.3) m, i.e. 0.3 m
-above the body origin (body frame x forward, y left, z up), looking along body +x; ``user_code``
-then resized it to 90 x 60 with ``cv2.resize`` (INTER_LINEAR). So the 90 x 60 image spans
-2 atan(4/3 tan 35 deg) = 86.1 degrees across and 70 degrees high, and its pixels are not square.
+The default geometry is the camera the paper's training data was actually rendered with: Flightmare
+rendered 640 x 480 depth with a 100 degree field of view (Unity's ``fieldOfView`` is vertical;
+Flightmare's intrinsics agree: f = (height / 2) / tan(fov / 2)), mounted at t_BC = (0.3, 0, 0) m,
+i.e. 0.3 m FORWARD of the body origin (body frame x forward, y left, z up), looking along body +x;
+``user_code`` then resized it to 90 x 60 with ``cv2.resize`` (INTER_LINEAR). So the 90 x 60 image
+spans 2 atan(4/3 tan 50 deg) = 115.6 degrees across and 100 degrees high, and its pixels are not square.
+
+Why this camera (preset ``vision_config_yaml``) and not the one in the original's
+``envsim/parameters/camera_config.yaml`` (320 x 240, 70 degrees, t_BC = (0, 0, 0.3); preset
+``camera_config_yaml``): ``envsim/src/visionsim_node.cpp`` builds
+``flightlib::VisionEnv($FLIGHTMARE_PATH/flightpy/configs/vision/config.yaml, 0)``, whose constructor
+(``init()`` -> ``configCamera(cfg_)``) adds the ``rgb_camera`` of that file (t_BC (0.3, 0, 0),
+r_BC (0, 0, -90), 640 x 480, fov 100, depth on). visionsim_node's later
+``configCamera(camera_config.yaml)`` returns early ("Camera has been added. Skipping the camera
+configuration.") because the quadrotor already has a camera. r_BC (0, 0, -90) is Rz(-90 deg)
+(configCamera composes Rz(yaw) Ry(pitch) Rx(roll)); ``transformationRos2Unity`` swaps y and z, so
+Unity's camera axes (x right, y up, z forward) become body -y, +z and +x: it looks straight ahead,
+image up = body up.
 
 Where each output pixel looks: INTER_LINEAR maps output pixel j's centre to source coordinate
 (j + 0.5) * W_src / W_out (edge-based, i.e. pixel centres at +0.5), and interpolates the two source
@@ -13,7 +25,8 @@ pixels around it, without anti-aliasing. Taken as a sample of the rendered image
 that is the ray of a pinhole with the same field of view and W_out x H_out pixels, so the source
 resolution drops out and only its aspect ratio matters: this camera casts exactly those rays. The
 one approximation: across a depth edge, the original blended the two neighbouring source pixels
-(1/171 rad apart), where this camera reads the near or the far surface.
+(1/201 rad apart at the centre of the default camera), where this camera reads the near or the far
+surface.
 
 Image row 0 is the top (body +z), column 0 the left (body +y). A pixel holds planar depth
 (distance along the optical axis, as a depth camera reports it) divided by ``max_range_m`` and
@@ -26,6 +39,9 @@ Example::
 
     camera = DepthCamera(CameraConfig())
     depth = camera.render(scene, position=(0, 0, 3.5), rotation=np.eye(3))   # (60, 90) float32
+    # camera_config.yaml's camera, which the original never applied
+    CameraConfig.from_preset("camera_config_yaml")
+    # in a collect YAML: ``camera: {preset: camera_config_yaml}``; vitfly evaluate: --camera preset=camera_config_yaml
     # vitfly's camera before it followed the original: 90 x 67.4 degrees, square pixels, at the body origin
     CameraConfig(horizontal_fov_deg=90.0, vertical_fov_deg=67.38, mount_offset_m=(0.0, 0.0, 0.0))
 """
@@ -33,16 +49,53 @@ Example::
 from __future__ import annotations
 
 import math
+from collections.abc import Mapping
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
 from vitfly.sim.scenes import Scene
 
+# Named camera geometries of the original project (CameraConfig fields). A preset fixes only the
+# geometry; range, noise, dropout and ground stay as given (or default).
+CAMERA_PRESETS: dict[str, dict] = {
+    # flightpy/configs/vision/config.yaml rgb_camera: the camera the original actually rendered with
+    "vision_config_yaml": {
+        "vertical_fov_deg": 100.0,
+        "horizontal_fov_deg": None,
+        "source_width": 640,
+        "source_height": 480,
+        "mount_offset_m": (0.3, 0.0, 0.0),
+    },
+    # envsim/parameters/camera_config.yaml: configured by visionsim_node but skipped (a camera was already added)
+    "camera_config_yaml": {
+        "vertical_fov_deg": 70.0,
+        "horizontal_fov_deg": None,
+        "source_width": 320,
+        "source_height": 240,
+        "mount_offset_m": (0.0, 0.0, 0.3),
+    },
+}
+DEFAULT_CAMERA_PRESET = "vision_config_yaml"
+
+
+def expand_camera_preset(values: Mapping[str, Any], prefix: str = "") -> dict[str, Any]:
+    """CameraConfig fields from a mapping that may hold ``preset: NAME``: the preset's geometry, then the
+    other fields given (they win). Raises ValueError naming ``{prefix}preset`` for an unknown name."""
+    values = dict(values)
+    if "preset" not in values:
+        return values
+    name = values.pop("preset")
+    if name not in CAMERA_PRESETS:
+        raise ValueError(f"field {prefix}preset is {name!r}; expected one of {', '.join(CAMERA_PRESETS)}")
+    return {**CAMERA_PRESETS[name], **values}
+
 
 @dataclass(frozen=True)
 class CameraConfig:
-    """Depth camera settings (m, degrees, pixels); defaults are the paper's Flightmare camera.
+    """Depth camera settings (m, degrees, pixels); defaults are the original's effective Flightmare camera
+    (preset ``vision_config_yaml``, see the module docstring).
 
     ``horizontal_fov_deg`` None: derived from the vertical one and the aspect ratio of the rendered
     (source) image, tan(h / 2) = tan(v / 2) * source_width / source_height (a pinhole resized to the
@@ -51,15 +104,20 @@ class CameraConfig:
 
     height: int = 60  # output image, after the resize
     width: int = 90
-    vertical_fov_deg: float = 70.0  # of the rendering pinhole (Unity's fov is vertical)
+    vertical_fov_deg: float = 100.0  # of the rendering pinhole (Unity's fov is vertical)
     horizontal_fov_deg: float | None = None  # None: from vertical_fov_deg and the source aspect
-    source_width: int = 320  # the image Flightmare rendered before the resize (only its aspect matters)
-    source_height: int = 240
-    mount_offset_m: tuple[float, float, float] = (0.0, 0.0, 0.3)  # camera centre in the body frame (t_BC)
+    source_width: int = 640  # the image Flightmare rendered before the resize (only its aspect matters)
+    source_height: int = 480
+    mount_offset_m: tuple[float, float, float] = (0.3, 0.0, 0.0)  # camera centre in the body frame (t_BC)
     max_range_m: float = 10.0  # normalisation: stored depth = metric depth / max_range_m, clipped to 1
     render_ground: bool = True  # the plane z = 0
     noise_std_m: float = 0.0  # additive Gaussian noise on metric depth (domain randomisation)
     dropout_prob: float = 0.0  # probability that a pixel reads 0 ("no reading")
+
+    @classmethod
+    def from_preset(cls, name: str, **overrides) -> CameraConfig:
+        """The camera of preset ``name`` (a key of ``CAMERA_PRESETS``), other fields from ``overrides``."""
+        return cls(**expand_camera_preset({"preset": name, **overrides}))
 
     @property
     def tan_half_vertical(self) -> float:

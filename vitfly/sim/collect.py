@@ -42,7 +42,7 @@ import yaml
 
 from vitfly.datamodules.schema import TrajectoryRecord, TrajectoryWriter, check_depth_compression, encode_depth
 from vitfly.errors import VitflyError
-from vitfly.sim.camera import CameraConfig
+from vitfly.sim.camera import CameraConfig, expand_camera_preset
 from vitfly.sim.policies import ExpertPolicy
 from vitfly.sim.rollout import RolloutConfig, TaskConfig, run_episodes
 from vitfly.sim.scenes import ENVS, make_scene, scene_config
@@ -153,6 +153,11 @@ def _from_mapping(cls, data: dict, source: str, prefix: str):
         elif dataclasses.is_dataclass(default):
             if not isinstance(value, dict):
                 raise VitflyError(f"{source}: field {name} must be a mapping")
+            if isinstance(default, CameraConfig):  # camera: {preset: NAME, ...} -> the preset's fields
+                try:
+                    value = expand_camera_preset(value, f"{name}.")
+                except ValueError as err:
+                    raise VitflyError(f"{source}: {err}") from None
             kwargs[key] = _from_mapping(type(default), value, source, f"{name}.")
         elif isinstance(default, tuple):
             if not isinstance(value, list | tuple) or len(value) != len(default):
