@@ -4,8 +4,8 @@ The network stays a plain ``nn.Module`` (``self.net``, built by ``create_model``
 the loss (paper eq. 1: MSE between the prediction and ``velocity_cmd / desired_speed`` averaged over
 valid steps), Adam with the paper's linear warm-up (set per step), truncated BPTT by manual optimisation, and the
 validation metrics (MSE, command cosine, and per-axis R^2 of the lateral and vertical commands, which
-tell a learned command from a constant one). ``create_policy(name, **kwargs)`` builds one; in LightningCLI YAML a registered
-name works as the model's class (``model: vit_lstm``), because every registered name has a
+tell a learned command from a constant one). ``create_policy(name, **kwargs)`` builds one; in LightningCLI
+YAML a registered name works as the model's class (``model: vit_lstm``), because every registered name has a
 ``PolicyModule`` subclass of that name in this module, created on first use.
 """
 
