@@ -120,8 +120,12 @@ def stage_collect(collect_config: str | None, overrides: dict, data: str | Path,
     collect_cfg = load_collect_config(collect_config, overrides)
     if Path(data).exists():
         # complete with these settings: only read it (a reader elsewhere in this process blocks writers)
-        with open_trajectories(data, check_values=False) as f:
-            n, frames, stored = len(f), f.num_rows, f.config.get("collect")
+        try:
+            with open_trajectories(data, check_values=False) as f:
+                n, frames, stored = len(f), f.num_rows, f.config.get("collect")
+        except VitflyError:  # e.g. empty: killed before its first trajectory; collect resumes it or says why not
+            n = frames = 0
+            stored = None
         if n >= collect_cfg.trajectories and stored == json.loads(json.dumps(collect_cfg.content_key())):
             print(f"[collect] {data}: complete, {n} trajectories (0 new), {frames} frames")
             return {"trajectories": n, "new": 0, "frames": frames}
