@@ -16,7 +16,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--models", nargs="+",
                         help="only these architectures (trained with and, where the config says, without state)")
     parser.add_argument("--stages", nargs="+", choices=STAGES, metavar="STAGE",
-                        help=f"only these stages, in the order {', '.join(STAGES)} (default: all)")
+                        help=f"only these stages (run in the order {', '.join(STAGES)}); None: all of them")
     parser.add_argument("--no-progress", action="store_true", help="no progress bars")
 
 

@@ -19,7 +19,7 @@ Every failure is one line. Floating-point tensors are stored as fp16 (half the s
 outputs move by about 1e-3) and loaded into the network's own dtype; integer buffers keep theirs.
 
 Where: ``directory`` if given, else ``$VITFLY_WEIGHTS_DIR``, else ``weights/`` at the repository root
-(beside the ``vitfly`` package).
+(beside the ``vitfly`` package, as in a clone or an editable install), else ``./weights``.
 
 Publishing writes the weights file and then the manifest, each atomically (temporary file + rename).
 A kill between the two leaves a manifest whose hash does not match the file: loading refuses it with
@@ -55,12 +55,16 @@ RESERVED_FIELDS = ("file", "sha256", "dtype", "model", "use_state", "model_kwarg
 
 
 def weights_dir(directory: str | os.PathLike | None = None) -> Path:
-    """The weights directory: ``directory``, else ``$VITFLY_WEIGHTS_DIR``, else ``<repository>/weights``."""
+    """The weights directory: ``directory``, else ``$VITFLY_WEIGHTS_DIR``, else ``<repository>/weights`` when it
+    holds a manifest, else ``./weights``."""
     if directory is not None:
         return Path(directory)
     if os.environ.get(WEIGHTS_ENV):
         return Path(os.environ[WEIGHTS_ENV])
-    return Path(__file__).resolve().parents[2] / "weights"
+    beside_package = Path(__file__).resolve().parents[2] / "weights"
+    if (beside_package / MANIFEST_NAME).is_file() or not (Path.cwd() / "weights" / MANIFEST_NAME).is_file():
+        return beside_package
+    return Path.cwd() / "weights"
 
 
 def is_pretrained_spec(spec: str) -> bool:
