@@ -50,6 +50,7 @@ def stage_data(cfg: ReproduceConfig, progress: bool = True) -> dict:
 
 
 def _add_cost(train_dir: Path, seconds: float) -> dict:
+    """Add a finished training session's wall time to ``cost.json`` (a killed session's time is not counted)."""
     path = train_dir / "cost.json"
     cost = json.loads(path.read_text()) if path.exists() else {"wall_s": 0.0, "sessions": 0}
     cost = {"wall_s": cost["wall_s"] + seconds, "sessions": cost["sessions"] + 1}
@@ -63,10 +64,11 @@ def stage_train_all(cfg: ReproduceConfig, progress: bool = True) -> dict[str, Pa
     for model, use_state in runs(cfg):
         stage, callbacks = train_callbacks(train_stage(cfg, model, use_state), cfg, "reproduce config")
         train_dir = cfg.train_dir(model, use_state)
-        was_done = done_checkpoint(train_dir) is not None
+        marker = train_dir / "done.json"
+        before = marker.read_text() if marker.exists() else None
         t0 = time.perf_counter()
         ckpt = stage_train(stage, cfg.data, train_dir, cfg.threads, progress, callbacks=callbacks)
-        if not was_done or done_checkpoint(train_dir) != ckpt:
+        if marker.read_text() != before:  # it trained (done.json is rewritten only then)
             cost = _add_cost(train_dir, time.perf_counter() - t0)
             print(f"[train] {run_label(model, use_state)}: {cost['wall_s'] / 60:.1f} min of training so far")
         checkpoints[run_label(model, use_state)] = ckpt
