@@ -379,4 +379,6 @@ def findings_markdown(findings: Sequence[Finding]) -> str:
                      f"{cell(f.why)} |")
     rules = [f"{i}. {f.rule}." for i, f in enumerate(findings, 1)]
     counts = ", ".join(f"{sum(f.verdict == v for f in findings)} {v}" for v in VERDICTS)
-    return "\n".join([*lines, "", f"Verdicts: {counts}.", "", "Rules (one per row):", "", *rules, ""])
+    intervals = ("Intervals: 95 % Wilson score intervals for rates (success); mean ± 1.96 standard errors for means "
+                 "(collisions per trial, time in collision, energy cost, commanded acceleration). n: trials per cell.")
+    return "\n".join([*lines, "", f"Verdicts: {counts}.", "", intervals, "", "Rules (one per row):", "", *rules, ""])
