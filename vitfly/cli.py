@@ -26,6 +26,8 @@ SUBCOMMANDS: dict[str, tuple[str, str]] = {
     "export": ("export", "export a network for deployment (ONNX)"),
     "render": ("render", "draw a scene, a flown path and depth frames to PNG/GIF"),
     "pipeline": ("pipeline", "the main job: collect if missing, train, fly against expert and straight, report"),
+    "reproduce": ("reproduce", "the paper's results section: data, 11 trainings, every evaluation, results.md"),
+    "publish-weights": ("publish_weights", "a trained checkpoint as weights/NAME.safetensors (fp16) + manifest"),
 }
 
 

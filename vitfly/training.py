@@ -57,6 +57,7 @@ def train_policy(
     data_kwargs: dict | None = None,
     trainer_kwargs: dict | None = None,
     progress_bar: bool = True,
+    callbacks: list | None = None,
 ) -> Path:
     """Train ``model`` on ``data_path``; returns the path of the best checkpoint (last if no validation).
 
@@ -65,7 +66,8 @@ def train_policy(
     arguments; a finished run returns at once. The split is frozen in ``out_dir/split.json``: a later call on
     a dataset that grew keeps the validation trajectories and trains on the new ones as well.
     ``policy_kwargs`` go to PolicyModule (e.g. lr, tbptt_steps), ``data_kwargs`` to TrajectoryDataModule,
-    ``trainer_kwargs`` to lightning.Trainer.
+    ``trainer_kwargs`` to lightning.Trainer, ``callbacks`` join the Trainer's (e.g.
+    ``vitfly.workflows.closed_loop_check.ClosedLoopCheck``).
     """
     import lightning as L
     from lightning.pytorch.callbacks import ModelCheckpoint, RichProgressBar
@@ -88,7 +90,7 @@ def train_policy(
     )
     ckpt_dir = out_dir / CHECKPOINT_DIR
     checkpoint = ModelCheckpoint(dirpath=ckpt_dir, **checkpoint_defaults())
-    callbacks = [checkpoint] + ([RichProgressBar()] if progress_bar else [])
+    callbacks = [checkpoint] + ([RichProgressBar()] if progress_bar else []) + list(callbacks or [])
     trainer = L.Trainer(
         max_epochs=max_epochs,
         default_root_dir=out_dir,

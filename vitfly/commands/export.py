@@ -1,4 +1,7 @@
-"""``vitfly export CKPT_OR_NAME --format onnx --out policy.onnx``: a network for deployment."""
+"""``vitfly export CKPT_OR_NAME --format onnx --out policy.onnx``: a network for deployment.
+
+CKPT_OR_NAME: a checkpoint file, ``pretrained:NAME`` (published weights) or a registry name (random weights).
+"""
 
 from __future__ import annotations
 
@@ -13,8 +16,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "source",
         metavar="CKPT_OR_NAME",
-        help="a vitfly/Lightning checkpoint, an original state dict (with --arch), or a registry name "
-        "(random-initialised weights)",
+        help="a vitfly/Lightning checkpoint, an original state dict (with --arch), pretrained:NAME (published "
+        "weights, e.g. pretrained:vit_lstm), or a registry name (random-initialised weights)",
     )
     parser.add_argument("--format", choices=("onnx",), default="onnx", help="export format")
     parser.add_argument("--out", required=True, help="output file (.onnx)")
@@ -32,13 +35,19 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from vitfly.deploy.onnx import export_onnx
-    from vitfly.zoo import create_model, list_models, load_network
+    from vitfly.zoo import create_model, list_models, load_network, load_pretrained
+    from vitfly.zoo.pretrained import is_pretrained_spec
 
     if os.path.exists(args.out) and not args.force:
         raise VitflyError(f"{args.out}: already exists; pass --force to overwrite")
     if args.batch_size is not None and args.batch_size < 1:
         raise VitflyError(f"--batch-size must be at least 1, got {args.batch_size}")
-    if os.path.exists(args.source):
+    if is_pretrained_spec(args.source):
+        if args.arch is not None:
+            raise VitflyError(f"--arch {args.arch} only applies to original checkpoints, not to {args.source}")
+        net = load_pretrained(args.source)
+        origin = args.source
+    elif os.path.exists(args.source):
         net = load_network(args.source, arch=args.arch)
         origin = args.source
     elif args.source in list_models():

@@ -24,6 +24,7 @@ from lightning.pytorch.utilities import rank_zero_info
 from torch.utils.data import DataLoader, Sampler
 
 from vitfly.atomic import write_text
+from vitfly.datamodules.augment import check_mirror_prob, random_mirror
 from vitfly.datamodules.dataset import TrajectoryDataset, collate_trajectories, depth_to_unit_float
 from vitfly.datamodules.schema import open_trajectories
 from vitfly.datamodules.split import (
@@ -155,6 +156,9 @@ class TrajectoryDataModule(L.LightningDataModule):
             state itself when it is False).
         test_path / predict_path: other datasets for ``vitfly test`` / ``vitfly predict``
             (default: the validation trajectories).
+        mirror_prob: probability that a training trajectory (or window) is mirrored left-right in an
+            epoch: depth flipped, the command's y and the attitude mirrored (``vitfly.datamodules.augment``).
+            Training batches only; default 0.0 (off, the paper's training).
     """
 
     def __init__(
@@ -172,6 +176,7 @@ class TrajectoryDataModule(L.LightningDataModule):
         use_state: bool = True,
         test_path: str | None = None,
         predict_path: str | None = None,
+        mirror_prob: float = 0.0,
     ):
         super().__init__()
         if batch_size < 1:
@@ -190,6 +195,7 @@ class TrajectoryDataModule(L.LightningDataModule):
         self.use_state = use_state
         self.test_path = test_path
         self.predict_path = predict_path
+        self.mirror_prob = check_mirror_prob(mirror_prob, "data.mirror_prob")
         self.train_indices: list[int] = []
         self.val_indices: list[int] = []
         # the sensor the dataset was recorded with (plain values; the policy stores it in its checkpoints):
@@ -333,6 +339,13 @@ class TrajectoryDataModule(L.LightningDataModule):
             persistent_workers=self.num_workers > 0,
             batch_sampler=sampler,
         )
+
+    def on_before_batch_transfer(self, batch: dict, dataloader_idx: int) -> dict:
+        # the one place augmentation happens: training batches only, on the host, before the device copy
+        trainer = self.trainer
+        if self.mirror_prob > 0.0 and trainer is not None and trainer.training:
+            batch = random_mirror(batch, self.mirror_prob, self.split_seed, trainer.current_epoch)
+        return batch
 
     def on_after_batch_transfer(self, batch: dict, dataloader_idx: int) -> dict:
         return depth_to_unit_float(batch)

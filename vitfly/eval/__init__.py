@@ -1,4 +1,4 @@
-"""Closed-loop evaluation: the paper's metrics, sweeps, reports and plots, the main job and the ablation.
+"""Closed-loop evaluation: the paper's metrics, sweeps, reports and plots, findings checked against the paper.
 
 - ``metrics``: the flight metrics as pure functions of one path;
 - ``learned_policy``: a zoo network flown as a lockstep simulator policy (paper deployment);
@@ -7,8 +7,11 @@
 - ``sweep``: trial planning, shards, lockstep batches, worker processes (``vitfly evaluate``);
 - ``aggregate``, ``report``, ``plots``, ``wandb_log``: summaries, CSV/Markdown, figures, wandb;
 - ``evaluation``: sweep + reports + GIF as one call;
-- ``pipeline``: ``vitfly pipeline``, the main job; ``ablation``: ``vitfly ablate --no-state``;
+- ``repeats``: repeated trials of one fixed scene from jittered starts, and their mean path;
+- ``paper_figures``: the paper's results figures; ``findings``: each paper finding checked, with intervals;
 - ``latency``: the paper's latency table (``vitfly benchmark-latency``).
+
+The end-to-end jobs (``vitfly pipeline``, ``ablate``, ``reproduce``) are in :mod:`vitfly.workflows`.
 
 Submodules are imported on use, so ``import vitfly.eval`` stays light.
 """

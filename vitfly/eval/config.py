@@ -21,9 +21,10 @@ BACKENDS = ("eager", "onnxruntime")
 class SweepConfig:
     """One policy flown over envs x speeds x trials. Units: m/s for speeds, s for times."""
 
-    policy: str = "expert"  # a checkpoint path, "expert" or "straight"
+    policy: str = "expert"  # a checkpoint path, "pretrained:NAME", "expert" or "straight"
     arch: str | None = None  # architecture of an original-project checkpoint
-    name: str | None = None  # label in reports; default: "expert", "straight" or the checkpoint's stem
+    name: str | None = None  # label in reports; default: "expert", "straight", NAME of pretrained:NAME or the
+    # checkpoint's stem
     env: list[str] = field(default_factory=lambda: ["spheres"])
     preset: str = "medium"  # scene density preset
     speeds: list[float] = field(default_factory=lambda: [3.0, 4.0, 5.0, 6.0, 7.0])
@@ -69,7 +70,11 @@ class SweepConfig:
     def label(self) -> str:
         if self.name:
             return self.name
-        return self.policy if self.policy in ("expert", "straight") else Path(self.policy).stem
+        if self.policy in ("expert", "straight"):
+            return self.policy
+        if self.policy.startswith("pretrained:"):
+            return self.policy.split(":", 1)[1]
+        return Path(self.policy).stem
 
 
 def parse_shard(text: str | None, source: str = "--shard") -> tuple[int, int]:

@@ -1,7 +1,8 @@
 """What ``--policy`` names, as a picklable recipe that each worker process builds once.
 
-``expert`` and ``straight`` are the simulator's built-in policies; anything else is a checkpoint
-path: a vitfly/Lightning checkpoint, or an original-project state dict with ``arch``.
+``expert`` and ``straight`` are the simulator's built-in policies; ``pretrained:NAME`` is a network
+published in the weights directory (``vitfly.zoo.pretrained``); anything else is a checkpoint path: a
+vitfly/Lightning checkpoint, or an original-project state dict with ``arch``.
 """
 
 from __future__ import annotations
@@ -16,7 +17,7 @@ BUILTIN = ("expert", "straight")
 
 @dataclass(frozen=True)
 class PolicySource:
-    spec: str  # "expert", "straight" or a checkpoint path
+    spec: str  # "expert", "straight", "pretrained:NAME" or a checkpoint path
     arch: str | None = None  # architecture of an original-project checkpoint
     backend: str = "eager"  # "eager" or "onnxruntime" (learned policies)
     device: str = "cpu"
@@ -26,14 +27,28 @@ class PolicySource:
     def is_builtin(self) -> bool:
         return self.spec in BUILTIN
 
+    @property
+    def is_pretrained(self) -> bool:
+        from vitfly.zoo.pretrained import is_pretrained_spec
+
+        return is_pretrained_spec(self.spec)
+
     def check(self) -> None:
         """Fail early, in the parent process, with one line naming the bad input."""
         if self.is_builtin:
             if self.arch is not None:
                 raise VitflyError(f"--arch {self.arch} only applies to checkpoints, not to policy {self.spec!r}")
             return
+        if self.is_pretrained:
+            if self.arch is not None:
+                raise VitflyError(f"--arch {self.arch} only applies to original checkpoints, not to {self.spec}")
+            from vitfly.zoo.pretrained import manifest_entry, pretrained_name
+
+            manifest_entry(pretrained_name(self.spec))  # the manifest lists it; the file is checked on loading
+            return
         if not Path(self.spec).is_file():
-            raise VitflyError(f"--policy {self.spec}: no such checkpoint file (or use 'expert' / 'straight')")
+            raise VitflyError(f"--policy {self.spec}: no such checkpoint file "
+                              "(or use 'expert', 'straight' or 'pretrained:NAME')")
 
     def trained_sensor(self) -> dict | None:
         """The sensor a checkpoint was trained with ({depth_max_m, camera, control_hz}); None for the built-in
@@ -45,6 +60,10 @@ class PolicySource:
         return load_sensor(self.spec)
 
     def load_network(self):
+        if self.is_pretrained:
+            from vitfly.zoo.pretrained import load_pretrained
+
+            return load_pretrained(self.spec)
         from vitfly.zoo import load_network
 
         return load_network(self.spec, arch=self.arch)

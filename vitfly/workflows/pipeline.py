@@ -56,6 +56,7 @@ class EvalStage:
     threads: int = 1
     backend: str = "eager"
     timeout_s: float | None = None
+    device: str = "cpu"  # torch device of learned policies
 
 
 @dataclass
@@ -108,7 +109,7 @@ def sweep_config(e: EvalStage, out_dir: str | Path, policy: str, name: str | Non
     return SweepConfig(policy=policy, name=name, env=list(e.env), preset=e.preset, speeds=list(e.speeds),
                        trials=e.trials, seed=e.seed, out=str(out_dir), num_envs=e.num_envs, workers=e.workers,
                        threads=e.threads, backend=e.backend, timeout_s=e.timeout_s, gif=gif, plots=False,
-                       overwrite=True)
+                       overwrite=True, device=e.device)
 
 
 def stage_collect(collect_config: str | None, overrides: dict, data: str | Path, progress: bool = True) -> dict:
@@ -119,8 +120,12 @@ def stage_collect(collect_config: str | None, overrides: dict, data: str | Path,
     collect_cfg = load_collect_config(collect_config, overrides)
     if Path(data).exists():
         # complete with these settings: only read it (a reader elsewhere in this process blocks writers)
-        with open_trajectories(data, check_values=False) as f:
-            n, frames, stored = len(f), f.num_rows, f.config.get("collect")
+        try:
+            with open_trajectories(data, check_values=False) as f:
+                n, frames, stored = len(f), f.num_rows, f.config.get("collect")
+        except VitflyError:  # e.g. empty: killed before its first trajectory; collect resumes it or says why not
+            n = frames = 0
+            stored = None
         if n >= collect_cfg.trajectories and stored == json.loads(json.dumps(collect_cfg.content_key())):
             print(f"[collect] {data}: complete, {n} trajectories (0 new), {frames} frames")
             return {"trajectories": n, "new": 0, "frames": frames}
@@ -132,8 +137,12 @@ def stage_collect(collect_config: str | None, overrides: dict, data: str | Path,
     return {"trajectories": summary.trajectories, "new": summary.new_trajectories, "frames": summary.frames}
 
 
-def stage_train(t: TrainStage, data: str | Path, train_dir: Path, threads: int = 0, progress: bool = True) -> Path:
-    """Train (or resume, or skip if done with the same settings); return the best checkpoint."""
+def stage_train(t: TrainStage, data: str | Path, train_dir: Path, threads: int = 0, progress: bool = True,
+                callbacks: list | None = None) -> Path:
+    """Train (or resume, or skip if done with the same settings); return the best checkpoint.
+
+    ``callbacks`` join the Trainer's (they are not part of the settings a finished run is compared by).
+    """
     marker = Path(train_dir) / "done.json"
     wanted = dataclasses.asdict(t) | {"data": str(data)}
     if marker.exists():
@@ -150,7 +159,8 @@ def stage_train(t: TrainStage, data: str | Path, train_dir: Path, threads: int =
     ckpt = train_policy(data, t.model, train_dir, use_state=t.use_state, max_epochs=t.max_epochs,
                         batch_size=t.batch_size, val_fraction=t.val_fraction, seed=t.seed,
                         policy_kwargs=t.policy_kwargs, data_kwargs=t.data_kwargs,
-                        trainer_kwargs={"enable_model_summary": False, **t.trainer_kwargs}, progress_bar=progress)
+                        trainer_kwargs={"enable_model_summary": False, **t.trainer_kwargs}, progress_bar=progress,
+                        callbacks=callbacks)
     write_text(marker, json.dumps({"checkpoint": str(ckpt), "train": wanted}) + "\n")
     print(f"[train] {t.model} (use_state={t.use_state}): {ckpt}")
     return ckpt

@@ -1,9 +1,10 @@
-"""Model zoo: the paper's five networks plus ResNet-18, behind one registry."""
+"""Model zoo: the paper's five networks plus ResNet-18, behind one registry; pretrained weights by name."""
 
 # the architecture modules register their builders on import
 from vitfly.zoo import convnet, lstmnet, resnet18, unet_lstm, vit, vit_lstm  # noqa: F401
 from vitfly.zoo.checkpoint import load_network, save_checkpoint
 from vitfly.zoo.legacy import load_legacy_checkpoint
+from vitfly.zoo.pretrained import load_pretrained, save_pretrained
 from vitfly.zoo.registry import create_model, list_models, register_model
 
 
@@ -22,6 +23,8 @@ __all__ = [
     "list_models",
     "load_legacy_checkpoint",
     "load_network",
+    "load_pretrained",
     "register_model",
     "save_checkpoint",
+    "save_pretrained",
 ]

@@ -3,8 +3,9 @@
 The network stays a plain ``nn.Module`` (``self.net``, built by ``create_model``); this module owns
 the loss (paper eq. 1: MSE between the prediction and ``velocity_cmd / desired_speed`` averaged over
 valid steps), Adam with the paper's linear warm-up (set per step), truncated BPTT by manual optimisation, and the
-validation metrics. ``create_policy(name, **kwargs)`` builds one; in LightningCLI YAML a registered
-name works as the model's class (``model: vit_lstm``), because every registered name has a
+validation metrics (MSE, command cosine, and per-axis R^2 of the lateral and vertical commands, which
+tell a learned command from a constant one). ``create_policy(name, **kwargs)`` builds one; in LightningCLI
+YAML a registered name works as the model's class (``model: vit_lstm``), because every registered name has a
 ``PolicyModule`` subclass of that name in this module, created on first use.
 """
 
@@ -17,7 +18,7 @@ import lightning as L
 import torch
 import torch.nn.functional as F
 from torch import nn
-from torchmetrics import MeanSquaredError, Metric
+from torchmetrics import MeanSquaredError, Metric, R2Score
 
 from vitfly.errors import VitflyError
 from vitfly.zoo.base import DepthPolicyNet
@@ -26,6 +27,9 @@ from vitfly.zoo.layers import state_vector
 from vitfly.zoo.registry import create_model, list_models
 
 CHUNK_KEYS = ("depth", "desired_speed", "quat", "velocity_cmd", "mask")
+# per-axis R^2 of the normalised command, logged as <prefix>/r2_<name>: the axes that carry the avoidance
+# (a constant command scores about 0 here, however well it does on MSE and cosine)
+R2_AXES = {"lateral": 1, "vertical": 2}  # world y (left), world z (up)
 MIN_SPEED_MPS = 1e-3  # guards the label division; real trajectories fly at >= 1 m/s
 
 
@@ -137,6 +141,8 @@ class PolicyModule(L.LightningModule):
         self.val_cos = CommandCosine()
         self.test_mse = MeanSquaredError()
         self.test_cos = CommandCosine()
+        self.val_r2 = nn.ModuleDict({axis: R2Score() for axis in R2_AXES})
+        self.test_r2 = nn.ModuleDict({axis: R2Score() for axis in R2_AXES})
 
     @property
     def is_recurrent(self) -> bool:
@@ -300,7 +306,7 @@ class PolicyModule(L.LightningModule):
                 module.running_mean.copy_(reduce(module.running_mean.clone(), reduce_op="mean"))
                 module.running_var.copy_(reduce(module.running_var.clone(), reduce_op="mean"))
 
-    def _evaluate(self, batch, mse: MeanSquaredError, cos: CommandCosine, prefix: str) -> None:
+    def _evaluate(self, batch, mse: MeanSquaredError, cos: CommandCosine, r2: nn.ModuleDict, prefix: str) -> None:
         prediction, _ = self(batch["depth"], batch["desired_speed"], batch["quat"])
         mask = batch["mask"]
         pred = prediction[mask]
@@ -310,12 +316,15 @@ class PolicyModule(L.LightningModule):
         n = int(mask.sum())
         self.log(f"{prefix}/loss", mse, on_step=False, on_epoch=True, prog_bar=True, batch_size=n)
         self.log(f"{prefix}/cosine", cos, on_step=False, on_epoch=True, batch_size=n)
+        for name, axis in R2_AXES.items():
+            r2[name].update(pred[:, axis], target[:, axis])
+            self.log(f"{prefix}/r2_{name}", r2[name], on_step=False, on_epoch=True, batch_size=n)
 
     def validation_step(self, batch, batch_idx: int) -> None:
-        self._evaluate(batch, self.val_mse, self.val_cos, "val")
+        self._evaluate(batch, self.val_mse, self.val_cos, self.val_r2, "val")
 
     def test_step(self, batch, batch_idx: int) -> None:
-        self._evaluate(batch, self.test_mse, self.test_cos, "test")
+        self._evaluate(batch, self.test_mse, self.test_cos, self.test_r2, "test")
 
     def predict_step(self, batch, batch_idx: int, dataloader_idx: int = 0) -> dict[str, torch.Tensor]:
         """Per step: ``velocity`` (network output, command / desired speed), ``velocity_mps`` (times the

@@ -1,0 +1,147 @@
+"""Pretrained weights: fp16 safetensors + manifest, loaded by name, refused with one line when anything is off."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+
+import pytest
+import torch
+from safetensors.torch import load_file, save_file
+
+from vitfly.errors import VitflyError
+from vitfly.eval.policy_source import PolicySource
+from vitfly.zoo import create_model, load_pretrained, save_checkpoint, save_pretrained
+from vitfly.zoo.pretrained import file_sha256, read_manifest, update_manifest
+
+torch.set_num_threads(1)
+
+
+def random_checkpoint(tmp_path, name="lstmnet", use_state=True, seed=0):
+    torch.manual_seed(seed)
+    net = create_model(name, use_state=use_state).eval()
+    with torch.no_grad():  # batch-norm statistics away from their defaults, so they round-trip too
+        for m in net.modules():
+            if isinstance(m, torch.nn.BatchNorm2d):
+                m.running_mean.normal_(0, 0.1)
+                m.running_var.uniform_(0.5, 2.0)
+    path = tmp_path / f"{name}.ckpt"
+    save_checkpoint(net, name, use_state, path)
+    return net, path
+
+
+def inputs(t=5, seed=1):
+    g = torch.Generator().manual_seed(seed)
+    return (torch.rand(2, t, 1, 60, 90, generator=g), torch.full((2, t, 1), 5.0),
+            torch.nn.functional.normalize(torch.randn(2, t, 4, generator=g), dim=-1))
+
+
+@pytest.mark.parametrize("name,use_state", [("lstmnet", True), ("convnet", False)])
+def test_round_trip_is_the_fp16_rounding_of_the_network(tmp_path, name, use_state):
+    net, ckpt = random_checkpoint(tmp_path, name, use_state)
+    weights = tmp_path / "weights"
+    path = save_pretrained(ckpt, f"my_{name}", {"preset": "tiny", "closed_loop": {"spheres": {"3": 0.5}}}, weights)
+    assert path == weights / f"my_{name}.safetensors"
+    stored = load_file(str(path))
+    for k, v in net.state_dict().items():  # floats stored as fp16, integer buffers as they were
+        assert stored[k].dtype == (torch.float16 if v.is_floating_point() else v.dtype), k
+    loaded = load_pretrained(f"pretrained:my_{name}", weights)
+    assert not loaded.training and loaded.use_state is use_state
+    for k, v in net.state_dict().items():
+        expected = v.half().to(v.dtype) if v.is_floating_point() else v
+        assert torch.equal(loaded.state_dict()[k], expected), k  # exactly the fp16 rounding, back in fp32
+        assert loaded.state_dict()[k].dtype == v.dtype
+    with torch.no_grad():
+        out, _ = net(*inputs())
+        out_loaded, _ = loaded(*inputs())
+    # fp16 keeps 11 significant bits (relative rounding 2^-11 ~ 5e-4 per weight): outputs agree to ~1e-3
+    torch.testing.assert_close(out_loaded, out, atol=5e-3, rtol=5e-3)
+    entry = read_manifest(weights)["models"][f"my_{name}"]
+    assert entry["sha256"] == file_sha256(path) and entry["model"] == name and entry["use_state"] is use_state
+    assert entry["preset"] == "tiny" and entry["closed_loop"] == {"spheres": {"3": 0.5}}
+    assert entry["dtype"] == "float16" and entry["file"] == path.name
+    update_manifest(f"my_{name}", {"closed_loop": {"spheres": {"3": 0.75}}}, weights)
+    assert read_manifest(weights)["models"][f"my_{name}"]["closed_loop"] == {"spheres": {"3": 0.75}}
+    assert read_manifest(weights)["models"][f"my_{name}"]["sha256"] == entry["sha256"]
+
+
+def test_tampered_missing_and_mismatched_files_are_one_line(tmp_path):
+    _, ckpt = random_checkpoint(tmp_path, "convnet")
+    weights = tmp_path / "weights"
+    path = save_pretrained(ckpt, "convnet", {}, weights)
+    data = bytearray(path.read_bytes())
+    data[-3] ^= 0x01  # one bit of one weight
+    path.write_bytes(bytes(data))
+    with pytest.raises(VitflyError, match=r"convnet.safetensors: sha256 .* differs from the manifest's .*refusing"):
+        load_pretrained("convnet", weights)
+    path.unlink()
+    with pytest.raises(VitflyError, match=r"convnet.safetensors: missing \(the manifest lists it for pretrained:conv"):
+        load_pretrained("convnet", weights)
+    with pytest.raises(VitflyError, match=r"pretrained:vit_lstm: not in .*manifest.json \(available: convnet\)"):
+        load_pretrained("vit_lstm", weights)
+    with pytest.raises(VitflyError, match=r"manifest.json: no pretrained weights manifest"):
+        load_pretrained("convnet", tmp_path / "nowhere")
+    # a file whose hash the manifest vouches for but whose shapes are another network's
+    manifest = read_manifest(weights)
+    other = {k: v.half() if v.is_floating_point() else v for k, v in create_model("lstmnet").state_dict().items()}
+    save_file(other, str(weights / "odd.safetensors"))
+    manifest["models"]["odd"] = {**manifest["models"]["convnet"], "file": "odd.safetensors",
+                                 "sha256": file_sha256(weights / "odd.safetensors")}
+    (weights / "manifest.json").write_text(json.dumps(manifest))
+    with pytest.raises(VitflyError, match=r"odd.safetensors: does not fit architecture 'convnet': missing keys"):
+        load_pretrained("odd", weights)
+    manifest["models"]["odd"]["file"] = "../x.safetensors"
+    (weights / "manifest.json").write_text(json.dumps(manifest))
+    with pytest.raises(VitflyError, match=r"field 'file' must be a file name inside"):
+        load_pretrained("odd", weights)
+    with pytest.raises(VitflyError, match=r"manifest field 'sha256' is written by the publisher"):
+        save_pretrained(ckpt, "x", {"sha256": "0"}, weights)
+    with pytest.raises(VitflyError, match=r"pretrained name '../x'"):
+        save_pretrained(ckpt, "../x", {}, weights)
+
+
+def test_cli_evaluates_and_exports_pretrained_weights(tmp_path):
+    _, ckpt = random_checkpoint(tmp_path, "convnet")
+    weights = tmp_path / "weights"
+    save_pretrained(ckpt, "convnet", {"preset": "test"}, weights)
+    env = {**__import__("os").environ, "VITFLY_WEIGHTS_DIR": str(weights)}
+    out = tmp_path / "eval"
+    run = subprocess.run(
+        [sys.executable, "-m", "vitfly.cli", "evaluate", "--policy", "pretrained:convnet", "--speeds", "7",
+         "--trials", "1", "--out", str(out), "--no-gif", "--no-plots", "--no-progress", "--timeout", "3"],
+        capture_output=True, text=True, env=env)
+    assert run.returncode == 0, run.stderr
+    rec = json.loads((out / "trials.jsonl").read_text().splitlines()[0])
+    assert rec["policy"] == "convnet" and rec["extra"]["policy_source"] == "pretrained:convnet"
+    run = subprocess.run([sys.executable, "-m", "vitfly.cli", "export", "pretrained:convnet", "--out",
+                          str(tmp_path / "p.onnx")], capture_output=True, text=True, env=env)
+    assert run.returncode == 0, run.stderr
+    assert "from pretrained:convnet" in run.stdout and (tmp_path / "p.onnx").is_file()
+    run = subprocess.run([sys.executable, "-m", "vitfly.cli", "evaluate", "--policy", "pretrained:nope",
+                          "--out", str(tmp_path / "e2")], capture_output=True, text=True, env=env)
+    errors = [line for line in run.stderr.splitlines() if "error" in line.lower()]
+    assert run.returncode == 2 and len(errors) == 1 and "vitfly: error: pretrained:nope: not in" in errors[0]
+
+
+def test_publish_weights_command_records_the_dataset(tmp_path):
+    from test_datamodule import write_dataset
+
+    _, ckpt = random_checkpoint(tmp_path, "convnet")
+    data = write_dataset(tmp_path / "d.h5", [4, 6])
+    weights = tmp_path / "w"
+    run = subprocess.run([sys.executable, "-m", "vitfly.cli", "publish-weights", str(ckpt), "--name", "convnet",
+                          "--weights-dir", str(weights), "--preset", "laptop", "--dataset", data,
+                          "--field", "notes=\"mirror 0.5\""], capture_output=True, text=True)
+    assert run.returncode == 0, run.stderr
+    entry = read_manifest(weights)["models"]["convnet"]
+    assert entry["preset"] == "laptop" and entry["notes"] == "mirror 0.5"
+    assert entry["dataset_frames"] == 10 and entry["dataset_trajectories"] == 2 and len(entry["dataset_hash"]) == 16
+    assert PolicySource("pretrained:convnet").is_pretrained
+
+
+def test_shipped_manifest_is_valid():
+    manifest = read_manifest()  # the repository's weights/manifest.json
+    for name, entry in manifest["models"].items():
+        load_pretrained(name)  # every shipped entry loads (hash, keys, shapes)
+        assert entry["dtype"] == "float16"

@@ -1,0 +1,46 @@
+"""``vitfly publish-weights CKPT --name NAME``: a checkpoint as ``weights/NAME.safetensors`` (fp16) + manifest."""
+
+from __future__ import annotations
+
+import argparse
+import json
+
+from vitfly.errors import VitflyError
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("checkpoint", help="a vitfly/Lightning checkpoint (vitfly fit, vitfly reproduce, ...)")
+    parser.add_argument("--name", required=True, help="the name it loads by: pretrained:NAME (e.g. vit_lstm)")
+    parser.add_argument("--weights-dir", help="weights directory (default: $VITFLY_WEIGHTS_DIR or <repo>/weights)")
+    parser.add_argument("--preset", help="provenance: the preset or recipe it was trained with")
+    parser.add_argument("--dataset", help="provenance: the training dataset (its hash and frame count are recorded)")
+    parser.add_argument("--field", action="append", default=[], metavar="KEY=JSON",
+                        help="another manifest field, value as JSON (repeatable), e.g. notes='\"lr 1e-4\"'")
+
+
+def parse_fields(items: list[str]) -> dict:
+    fields = {}
+    for item in items:
+        key, sep, text = item.partition("=")
+        if not sep or not key:
+            raise VitflyError(f"--field {item!r}: expected KEY=JSON")
+        try:
+            fields[key] = json.loads(text)
+        except ValueError:
+            fields[key] = text  # a bare word is a string
+    return fields
+
+
+def run(args: argparse.Namespace) -> int:
+    from vitfly.zoo.pretrained import save_pretrained
+
+    fields = parse_fields(args.field)
+    if args.preset:
+        fields["preset"] = args.preset
+    if args.dataset:
+        from vitfly.datamodules.provenance import dataset_fingerprint
+
+        fields.update(dataset_fingerprint(args.dataset))
+    path = save_pretrained(args.checkpoint, args.name, fields, args.weights_dir)
+    print(f"wrote {path} and its entry in {path.parent / 'manifest.json'}; load it as pretrained:{args.name}")
+    return 0

@@ -1,0 +1,203 @@
+"""``vitfly reproduce``: the paper's results section in one resumable command.
+
+Stages (each resumes after a kill; a rerun skips what is done with the same settings):
+
+1. ``data``: expert trajectories in spheres (``vitfly.workflows.pipeline.stage_collect``);
+2. ``train``: every model with the state input and the no-state ones, each from its recipe
+   ``configs/fit/<model>.yaml`` with the preset's overrides (``stage_train``: resumes from
+   ``last.ckpt``), into ``OUT/train/<model>-state`` and ``OUT/train/<model>-nostate``; with
+   ``train.publish_weights`` each finished state model is published as ``pretrained:<model>``;
+3. ``evaluate``: ``OUT/eval/spheres`` and ``OUT/eval/trees`` (every state model, expert, straight, at
+   ``evaluate.speeds``), ``OUT/eval/window`` (3 m/s) and ``OUT/eval/ablation`` (with and without state,
+   spheres and trees); sweeps resume per trial (``stage_evaluate``);
+4. ``paths``: repeated trials of one fixed spheres scene (``vitfly.eval.repeats``) into ``OUT/eval/paths``;
+5. ``latency``: the latency table (``vitfly.eval.latency.benchmark_model``) into ``OUT/latency.json``;
+6. ``report``: the paper's figures in ``OUT/figures``, ``OUT/ablation.md``, ``OUT/latency.md``,
+   ``OUT/results.md`` (each finding of the paper with ours beside it and a verdict,
+   ``vitfly.eval.findings``) and ``OUT/results.json``.
+
+Configuration: ``configs/reproduce.yaml``; its ``presets`` section (``tiny``, ``laptop``, ``paper``) is
+deep-merged over the top level. Unknown keys anywhere are one clear error.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import time
+from pathlib import Path
+
+from vitfly.atomic import write_text
+from vitfly.errors import VitflyError
+from vitfly.workflows.ablation import run_label
+from vitfly.workflows.pipeline import EvalStage, TrainStage, stage_collect, stage_evaluate, stage_train
+from vitfly.workflows.reproduce_config import (
+    STAGES,
+    ReproduceConfig,
+    done_checkpoint,
+    eval_stage,
+    paths_plan,
+    runs,
+    train_callbacks,
+    train_frames,
+    train_stage,
+)
+from vitfly.workflows.reproduce_report import stage_report
+
+
+def stage_data(cfg: ReproduceConfig, progress: bool = True) -> dict:
+    return stage_collect(cfg.collect_config, cfg.collect, cfg.data, progress)
+
+
+def _add_cost(train_dir: Path, seconds: float) -> dict:
+    """Add a finished training session's wall time to ``cost.json`` (a killed session's time is not counted)."""
+    path = train_dir / "cost.json"
+    cost = json.loads(path.read_text()) if path.exists() else {"wall_s": 0.0, "sessions": 0}
+    cost = {"wall_s": cost["wall_s"] + seconds, "sessions": cost["sessions"] + 1}
+    write_text(path, json.dumps(cost) + "\n")
+    return cost
+
+
+def stage_train_all(cfg: ReproduceConfig, progress: bool = True) -> dict[str, Path]:
+    """Train (or resume, or skip) every run; returns label -> checkpoint. Publishes state models if asked."""
+    checkpoints = {}
+    for model, use_state in runs(cfg):
+        stage, callbacks = train_callbacks(train_stage(cfg, model, use_state), cfg, "reproduce config")
+        train_dir = cfg.train_dir(model, use_state)
+        marker = train_dir / "done.json"
+        before = marker.read_text() if marker.exists() else None
+        t0 = time.perf_counter()
+        ckpt = stage_train(stage, cfg.data, train_dir, cfg.threads, progress, callbacks=callbacks)
+        if marker.read_text() != before:  # it trained (done.json is rewritten only then)
+            cost = _add_cost(train_dir, time.perf_counter() - t0)
+            print(f"[train] {run_label(model, use_state)}: {cost['wall_s'] / 60:.1f} min of training so far")
+        checkpoints[run_label(model, use_state)] = ckpt
+        if use_state and cfg.train.publish_weights and model in cfg.train.publish_models:
+            publish(cfg, model, ckpt, stage)
+    return checkpoints
+
+
+def trained_checkpoints(cfg: ReproduceConfig) -> dict[str, Path]:
+    """label -> checkpoint of every finished training (one line naming the first missing one)."""
+    out = {}
+    for model, use_state in runs(cfg):
+        ckpt = done_checkpoint(cfg.train_dir(model, use_state))
+        if ckpt is None:
+            raise VitflyError(f"{cfg.train_dir(model, use_state)}: {run_label(model, use_state)} is not trained "
+                              "yet; run the train stage first (vitfly reproduce --stages train)")
+        out[run_label(model, use_state)] = ckpt
+    return out
+
+
+def publish(cfg: ReproduceConfig, model: str, ckpt: Path, stage: TrainStage) -> None:
+    """``pretrained:<model>`` from ``ckpt`` (skipped if the manifest already holds this checkpoint's state)."""
+    import torch
+
+    from vitfly.datamodules.provenance import dataset_fingerprint
+    from vitfly.zoo.pretrained import read_manifest, save_pretrained
+
+    saved = torch.load(ckpt, map_location="cpu", weights_only=True)
+    entry = read_manifest(cfg.train.weights_dir, missing_ok=True)["models"].get(model) or {}
+    if entry.get("source_checkpoint") == str(ckpt.resolve()) and entry.get("steps") == saved.get("global_step"):
+        return
+    train_dir = cfg.train_dir(model, True)
+    cost = json.loads((train_dir / "cost.json").read_text()) if (train_dir / "cost.json").exists() else {}
+    fields = {"preset": cfg.preset, **dataset_fingerprint(cfg.data), "train_frames": train_frames(train_dir, cfg.data),
+              "train_wall_s": cost.get("wall_s"), "recipe": dataclasses.asdict(stage)}
+    path = save_pretrained(ckpt, model, fields, cfg.train.weights_dir)
+    print(f"[train] published {model} as pretrained:{model} ({path})")
+
+
+def evaluation_plan(cfg: ReproduceConfig, checkpoints: dict[str, Path]) -> dict[str, tuple[EvalStage, list]]:
+    """Sweep name -> (settings, [(policy, label)]) of the study."""
+    e = cfg.evaluate
+    state = [(str(checkpoints[m]), m) for m in cfg.train.models]
+    baselines = [(b, None) for b in e.baselines]
+    ablation = [(str(checkpoints[run_label(m, s)]), run_label(m, s)) for m in cfg.train.nostate_models
+                for s in (True, False)]
+    return {
+        "spheres": (eval_stage(cfg, ["spheres"], e.speeds, e.spheres_trials), state + baselines),
+        "trees": (eval_stage(cfg, ["trees"], e.speeds, e.trees_trials), state + baselines),
+        "window": (eval_stage(cfg, ["window"], e.window_speeds, e.window_trials), state + baselines),
+        "ablation": (eval_stage(cfg, ["spheres", "trees"], e.ablation_speeds, e.ablation_trials), ablation),
+    }
+
+
+def stage_evaluate_all(cfg: ReproduceConfig, checkpoints: dict[str, Path], progress: bool = True) -> None:
+    from vitfly.eval.evaluation import write_outputs
+
+    for name, (stage, policies) in evaluation_plan(cfg, checkpoints).items():
+        if not policies:
+            continue
+        stage_evaluate(stage, cfg.eval_dir(name), policies, progress, gif_for=None)
+        write_outputs(cfg.eval_dir(name), with_plots=True, title=f"reproduce ({cfg.preset}): {name}")
+
+
+def stage_paths(cfg: ReproduceConfig, checkpoints: dict[str, Path]) -> None:
+    from vitfly.eval.repeats import fly_repeats
+
+    plan = paths_plan(cfg)
+    for policy, label in [(str(checkpoints[m]), m) for m in cfg.train.models] + [(b, b) for b in cfg.paths.baselines]:
+        flown, before = fly_repeats(plan, policy, cfg.eval_dir("paths"), label, cfg.evaluate.threads)
+        print(f"[paths] {label}: {flown} repeats flown, {before} done before")
+
+
+def _latency_key(cfg: ReproduceConfig, devices: list[str]) -> dict:
+    return {"models": list(cfg.train.models), "devices": devices, **dataclasses.asdict(cfg.latency)}
+
+
+def stage_latency(cfg: ReproduceConfig) -> list[dict]:
+    """The latency table of the trained architectures (random weights: latency does not depend on them)."""
+    import torch
+
+    from vitfly.eval.latency import benchmark_model
+
+    lat = cfg.latency
+    devices = ["cpu"] + (["cuda"] if torch.cuda.is_available() else []) if lat.device == "auto" else [lat.device]
+    path = cfg.out_dir / "latency.json"
+    key = _latency_key(cfg, devices)
+    if path.exists():
+        stored = json.loads(path.read_text())
+        if stored.get("settings") == key:
+            print(f"[latency] done before: {path}")
+            return stored["results"]
+    results = []
+    for model in cfg.train.models:
+        for device in devices:
+            r = benchmark_model(model, lat.backend, device, lat.threads, lat.iters, lat.warmup)
+            results.append(r.to_dict())
+            print(f"[latency] {model} {device}: median {r.median_ms:.2f} ms")
+    write_text(path, json.dumps({"settings": key, "results": results}, indent=2) + "\n")
+    return results
+
+
+def run_reproduce(cfg: ReproduceConfig, stages: list[str] | None = None, progress: bool = True) -> dict:
+    """Run ``stages`` (default: all, in order); returns what the report stage wrote (or {})."""
+    stages = list(stages or STAGES)
+    for s in stages:
+        if s not in STAGES:
+            raise VitflyError(f"--stages: unknown stage {s!r}; stages are {', '.join(STAGES)}")
+    timings: dict[str, float] = {}
+    checkpoints = None
+    for s in STAGES:
+        if s not in stages:
+            continue
+        t0 = time.perf_counter()
+        if s == "data":
+            stage_data(cfg, progress)
+        elif s == "train":
+            checkpoints = stage_train_all(cfg, progress)
+        elif s in ("evaluate", "paths"):
+            checkpoints = checkpoints or trained_checkpoints(cfg)
+            if s == "evaluate":
+                stage_evaluate_all(cfg, checkpoints, progress)
+            else:
+                stage_paths(cfg, checkpoints)
+        elif s == "latency":
+            stage_latency(cfg)
+        timings[s] = time.perf_counter() - t0
+        if s != "report":
+            print(f"[{s}] {timings[s]:.0f} s")
+    result = stage_report(cfg) if "report" in stages else {}
+    return result
+

@@ -1,0 +1,284 @@
+"""Configuration of ``vitfly reproduce``: typed sections, presets, and each model's training recipe.
+
+``load_reproduce_config(path, preset)`` reads ``configs/reproduce.yaml``: the top level, with the
+``presets.<preset>`` section deep-merged over it; unknown keys anywhere are one clear error. A model's
+training settings are its recipe ``<train.recipes>/<model>.yaml`` (a ``vitfly fit`` config: the
+``model.init_args``, ``data`` and ``trainer`` sections), then ``train.overrides``, then
+``train.per_model[model]`` (mappings merge key by key), as the pipeline's ``TrainStage``.
+"""
+
+from __future__ import annotations
+
+import copy
+import dataclasses
+import importlib
+import json
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from vitfly.errors import VitflyError
+from vitfly.eval.config import dataclass_from_dict, read_yaml
+from vitfly.workflows.pipeline import EvalStage, TrainStage
+
+PAPER_MODELS = ["convnet", "lstmnet", "unet_lstm", "vit", "vit_lstm"]
+STAGES = ("data", "train", "evaluate", "paths", "latency", "report")
+
+
+@dataclass
+class ReproduceTrain:
+    """Which networks to train, and how: each model's recipe, then ``overrides``, then ``per_model[model]``."""
+
+    recipes: str = "configs/fit"  # <recipes>/<model>.yaml: a `vitfly fit` config (LightningCLI layout)
+    models: list[str] = field(default_factory=lambda: [*PAPER_MODELS, "resnet18"])  # with the state input
+    nostate_models: list[str] = field(default_factory=lambda: list(PAPER_MODELS))  # also trained without it
+    overrides: dict = field(default_factory=dict)  # TrainStage fields for every model (dicts merge)
+    per_model: dict = field(default_factory=dict)  # model -> TrainStage fields (dicts merge)
+    closed_loop_check: dict | None = None  # ClosedLoopCheck arguments (None: no check during training)
+    publish_weights: bool = False  # publish each finished state model as pretrained:<model>
+    publish_models: list[str] = field(default_factory=lambda: list(PAPER_MODELS))
+    weights_dir: str | None = None  # None: $VITFLY_WEIGHTS_DIR or <repository>/weights
+
+
+@dataclass
+class ReproduceEvaluate:
+    """The paper's simulation protocol (trial counts per speed)."""
+
+    preset: str = "medium"
+    seed: int = 1000  # scenes the collection (seed 0) never used
+    speeds: list[float] = field(default_factory=lambda: [3.0, 4.0, 5.0, 6.0, 7.0])
+    spheres_trials: int = 18  # paper: 90 trials per model over 3-7 m/s
+    trees_trials: int = 10  # paper: 50 per model, 10 per speed
+    window_speeds: list[float] = field(default_factory=lambda: [3.0])
+    window_trials: int = 10
+    ablation_speeds: list[float] = field(default_factory=lambda: [3.0, 5.0, 7.0])
+    ablation_trials: int = 11  # the paper's rates are multiples of 1/11
+    baselines: list[str] = field(default_factory=lambda: ["expert", "straight"])
+    num_envs: int = 18
+    workers: int = 1
+    threads: int = 1
+    backend: str = "eager"
+    device: str = "cpu"
+    timeout_s: float | None = None
+
+
+@dataclass
+class ReproducePaths:
+    """Repeated trials of one spheres scene (scene ``scene_trial`` of the evaluation's seed)."""
+
+    speed: float = 5.0
+    repeats: int = 10
+    jitter_m: float = 0.1  # start offsets in y and z, uniform in [-jitter, jitter] m
+    scene_trial: int = 0
+    baselines: list[str] = field(default_factory=lambda: ["expert"])
+
+
+@dataclass
+class ReproduceLatency:
+    iters: int = 1000
+    warmup: int = 100
+    threads: int = 1
+    backend: str = "eager"
+    device: str = "auto"  # auto: CPU, plus the GPU when CUDA is present
+
+
+@dataclass
+class ReproduceConfig:
+    preset: str = "custom"  # the name recorded in the outputs (set from --preset)
+    out: str = "runs/reproduce"
+    data: str = "data/reproduce_spheres.h5"
+    collect_config: str | None = "configs/collect/spheres.yaml"
+    collect: dict = field(default_factory=dict)  # overrides of the collect YAML
+    threads: int = 0  # torch threads for training; 0 = all cores
+    train: ReproduceTrain = field(default_factory=ReproduceTrain)
+    evaluate: ReproduceEvaluate = field(default_factory=ReproduceEvaluate)
+    paths: ReproducePaths = field(default_factory=ReproducePaths)
+    latency: ReproduceLatency = field(default_factory=ReproduceLatency)
+
+    @property
+    def out_dir(self) -> Path:
+        return Path(self.out)
+
+    def train_dir(self, model: str, use_state: bool) -> Path:
+        return self.out_dir / "train" / (model + ("-state" if use_state else "-nostate"))
+
+    def eval_dir(self, name: str) -> Path:
+        return self.out_dir / "eval" / name
+
+
+def _deep_merge(base: dict, extra: dict) -> dict:
+    out = copy.deepcopy(base)
+    for k, v in (extra or {}).items():
+        out[k] = _deep_merge(out[k], v) if isinstance(v, dict) and isinstance(out.get(k), dict) else copy.deepcopy(v)
+    return out
+
+
+def load_reproduce_config(path: str | os.PathLike | None, preset: str | None = None,
+                          overrides: dict | None = None) -> ReproduceConfig:
+    """Defaults < YAML top level < its ``presets.<preset>`` (deep-merged) < overrides (top-level keys)."""
+    data = dict(read_yaml(path)) if path else {}
+    source = str(path) if path else "reproduce config"
+    presets = data.pop("presets", None) or {}
+    if not isinstance(presets, dict):
+        raise VitflyError(f"{source}: field 'presets' must be a mapping of preset names to settings")
+    if preset is not None:
+        if preset not in presets:
+            raise VitflyError(f"{source}: no preset {preset!r} under 'presets' (known: {', '.join(presets) or 'none'})")
+        data = _deep_merge(data, presets[preset])
+        data.setdefault("preset", preset)
+    data.update({k: v for k, v in (overrides or {}).items() if v is not None})
+    sections = {}
+    for name, cls in (("train", ReproduceTrain), ("evaluate", ReproduceEvaluate), ("paths", ReproducePaths),
+                      ("latency", ReproduceLatency)):
+        sections[name] = dataclass_from_dict(cls, data.pop(name, None) or {}, f"{source}: {name}")
+    cfg = dataclasses.replace(dataclass_from_dict(ReproduceConfig, data, source), **sections)
+    check_config(cfg, source)
+    return cfg
+
+
+def check_config(cfg: ReproduceConfig, source: str) -> None:
+    from vitfly.zoo import list_models
+
+    t = cfg.train
+    known = list_models()
+    for key in ("models", "nostate_models", "publish_models"):
+        for m in getattr(t, key):
+            if m not in known:
+                raise VitflyError(f"{source}: train.{key} has {m!r}; known: {', '.join(known)}")
+    for m in t.per_model:
+        if m not in known:
+            raise VitflyError(f"{source}: train.per_model has {m!r}; known: {', '.join(known)}")
+    for m in t.nostate_models:
+        if m not in t.models:
+            raise VitflyError(f"{source}: train.nostate_models has {m!r}, which train.models does not train "
+                              "with the state (the ablation compares the two)")
+    for b in [*cfg.evaluate.baselines, *cfg.paths.baselines]:
+        if b not in ("expert", "straight"):
+            raise VitflyError(f"{source}: baselines have {b!r}; expected expert and/or straight")
+    for name in ("spheres_trials", "trees_trials", "window_trials", "ablation_trials"):
+        if getattr(cfg.evaluate, name) < 1:
+            raise VitflyError(f"{source}: evaluate.{name} must be >= 1")
+    if cfg.paths.repeats < 1 or cfg.paths.jitter_m < 0:
+        raise VitflyError(f"{source}: paths.repeats must be >= 1 and paths.jitter_m >= 0")
+    for m in cfg.train.models:  # every recipe read (and checked) before anything runs
+        train_stage(cfg, m, True, source)
+    if t.closed_loop_check is not None:
+        _closed_loop_check(t.closed_loop_check, source)
+    from vitfly.workflows.pipeline import sweep_config
+
+    sweep_config(eval_stage(cfg, ["spheres"], cfg.evaluate.speeds, 1), cfg.eval_dir("spheres"),
+                 "expert").validate(f"{source}: evaluate")
+
+
+def _closed_loop_check(kwargs: dict, source: str):
+    from vitfly.workflows.closed_loop_check import ClosedLoopCheck
+
+    try:
+        return ClosedLoopCheck(**kwargs)
+    except TypeError as err:
+        raise VitflyError(f"{source}: train.closed_loop_check: {err}") from None
+
+
+RECIPE_SECTIONS = ("seed_everything", "model", "data", "trainer", "ckpt_path")
+RECIPE_DATA_FIELDS = {"batch_size", "val_fraction"}  # TrainStage fields; data_path/split_seed: the study's
+RECIPE_DATA_IGNORED = {"data_path", "split_seed", "split_file", "use_state", "test_path", "predict_path"}
+RECIPE_TRAINER_IGNORED = {"default_root_dir", "logger", "enable_checkpointing"}
+
+
+def _instantiate(spec: dict, where: str):
+    """A ``class_path``/``init_args`` mapping (LightningCLI style) as an object."""
+    if not isinstance(spec, dict) or "class_path" not in spec:
+        raise VitflyError(f"{where}: expected a mapping with class_path (and init_args)")
+    module, _, name = str(spec["class_path"]).rpartition(".")
+    try:
+        cls = getattr(importlib.import_module(module), name)
+        return cls(**(spec.get("init_args") or {}))
+    except (ImportError, AttributeError, TypeError, ValueError) as err:
+        raise VitflyError(f"{where}: cannot build {spec['class_path']} ({err})") from None
+
+
+def recipe_fields(path: str | Path, model: str) -> dict:
+    """A ``vitfly fit`` YAML as TrainStage fields (model, use_state and paths left to the study)."""
+    source = str(path)
+    data = read_yaml(path)
+    unknown = sorted(set(data) - set(RECIPE_SECTIONS))
+    if unknown:
+        raise VitflyError(f"{source}: unknown section {unknown[0]!r}; a recipe has {', '.join(RECIPE_SECTIONS)}")
+    out: dict = {"policy_kwargs": {}, "data_kwargs": {}, "trainer_kwargs": {}}
+    if isinstance(data.get("seed_everything"), int):
+        out["seed"] = data["seed_everything"]
+    model_section = data.get("model") or {}
+    class_path = str(model_section.get("class_path", model))
+    if class_path.rpartition(".")[2] != model:
+        raise VitflyError(f"{source}: model.class_path is {class_path!r}, but the file is the recipe of {model!r}")
+    out["policy_kwargs"] = {k: v for k, v in (model_section.get("init_args") or {}).items()
+                            if k not in ("use_state", "model")}
+    for k, v in (data.get("data") or {}).items():
+        if k in RECIPE_DATA_FIELDS:
+            out[k] = v
+        elif k not in RECIPE_DATA_IGNORED:
+            out["data_kwargs"][k] = v
+    for k, v in (data.get("trainer") or {}).items():
+        if k == "max_epochs":
+            out["max_epochs"] = v
+        elif k not in RECIPE_TRAINER_IGNORED:
+            out["trainer_kwargs"][k] = v
+    return out
+
+
+def train_stage(cfg: ReproduceConfig, model: str, use_state: bool, source: str = "reproduce config") -> TrainStage:
+    """Recipe < ``train.overrides`` < ``train.per_model[model]``, as the pipeline's TrainStage."""
+    recipe = Path(cfg.train.recipes) / f"{model}.yaml"
+    fields = _deep_merge(recipe_fields(recipe, model), cfg.train.overrides)
+    fields = _deep_merge(fields, cfg.train.per_model.get(model) or {})
+    fields.update(model=model, use_state=use_state)
+    return dataclass_from_dict(TrainStage, fields, f"{source}: train (recipe {recipe} + overrides) of {model}")
+
+
+def train_callbacks(stage: TrainStage, cfg: ReproduceConfig, source: str) -> tuple[TrainStage, list]:
+    """Callbacks out of ``trainer_kwargs`` (built from class_path), plus the closed-loop check if asked for."""
+    kwargs = dict(stage.trainer_kwargs)
+    specs = kwargs.pop("callbacks", None) or []
+    callbacks = [_instantiate(s, f"{source}: trainer.callbacks") for s in (specs if isinstance(specs, list)
+                                                                           else [specs])]
+    if cfg.train.closed_loop_check is not None:
+        callbacks.append(_closed_loop_check(cfg.train.closed_loop_check, source))
+    return dataclasses.replace(stage, trainer_kwargs=kwargs), callbacks
+
+
+def runs(cfg: ReproduceConfig) -> list[tuple[str, bool]]:
+    return [(m, True) for m in cfg.train.models] + [(m, False) for m in cfg.train.nostate_models]
+
+
+def done_checkpoint(train_dir: Path) -> Path | None:
+    marker = train_dir / "done.json"
+    if not marker.exists():
+        return None
+    ckpt = Path(json.loads(marker.read_text())["checkpoint"])
+    return ckpt if ckpt.exists() else None
+
+
+def train_frames(train_dir: Path, data: str) -> int | None:
+    from vitfly.datamodules.schema import open_trajectories
+
+    split = train_dir / "split.json"
+    if not split.exists():
+        return None
+    with open_trajectories(data, check_values=False) as tf:
+        lengths = tf.lengths
+    return int(sum(int(lengths[i]) for i in json.loads(split.read_text())["train"]))
+
+
+def eval_stage(cfg: ReproduceConfig, env: list[str], speeds: list[float], trials: int) -> EvalStage:
+    e = cfg.evaluate
+    return EvalStage(env=env, preset=e.preset, speeds=list(speeds), trials=trials, seed=e.seed,
+                     num_envs=e.num_envs, workers=e.workers, threads=e.threads, backend=e.backend,
+                     timeout_s=e.timeout_s, device=e.device)
+
+
+def paths_plan(cfg: ReproduceConfig):
+    from vitfly.eval.repeats import RepeatPlan
+
+    p, e = cfg.paths, cfg.evaluate
+    return RepeatPlan(env="spheres", preset=e.preset, speed=p.speed, repeats=p.repeats, jitter_m=p.jitter_m,
+                      seed=e.seed, scene_trial=p.scene_trial, timeout_s=e.timeout_s)

@@ -1,0 +1,213 @@
+"""The report of ``vitfly reproduce``: the paper's figures, tables and ``results.md`` from the study's outputs.
+
+Everything is drawn from what is on disk (trial records, checkpoints, latency.json), so the report can be
+written at any point of the study; findings without their data are marked n/a.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import os
+from pathlib import Path
+
+from vitfly.atomic import write_text
+from vitfly.workflows.ablation import run_label
+from vitfly.workflows.reproduce_config import (
+    ReproduceConfig,
+    done_checkpoint,
+    eval_stage,
+    paths_plan,
+    runs,
+    train_frames,
+)
+
+
+def latency_markdown(results: list[dict]) -> str:
+    """The paper's latency table (Table I) with ours beside it: median (p90) ms per call, batch 1."""
+    from vitfly.eval.latency import PAPER_LATENCY_MS, PAPER_PARAMS
+    from vitfly.eval.paper_tables import MODEL_LABELS
+
+    def ms(r: dict | None) -> str:
+        return "-" if r is None else f"{r['median_ms']:.2f} ({r['p90_ms']:.2f})"
+
+    by_model: dict[str, dict[str, dict]] = {}
+    for r in results:
+        by_model.setdefault(r["model"], {})[r["device"]] = r
+    threads = "/".join(str(t) for t in sorted({r["threads"] for r in results}))
+    lines = [f"Inference latency per call, batch 1, {threads} CPU thread(s), {results[0]['backend'] if results else ''}"
+             ", median (p90) ms; the paper's from its Table I.", "",
+             "| model | parameters | paper parameters | CPU ms | GPU ms | paper CPU ms | paper GPU ms |",
+             "|---|---:|---:|---:|---:|---:|---:|"]
+    for model, d in by_model.items():
+        any_r = d.get("cpu") or d.get("cuda")
+        paper = PAPER_LATENCY_MS.get(model)
+        cells = [MODEL_LABELS.get(model, model), f"{any_r['params']:,}",
+                 f"{PAPER_PARAMS[model]:,}" if model in PAPER_PARAMS else "-", ms(d.get("cpu")), ms(d.get("cuda")),
+                 f"{paper[0]:.1f}" if paper else "-", f"{paper[1]:.1f}" if paper else "-"]
+        lines.append("| " + " | ".join(cells) + " |")
+    return "\n".join(lines) + "\n"
+
+
+def _summary(directory: Path) -> tuple[list[dict], list] | tuple[None, None]:
+    from vitfly.eval import records
+    from vitfly.eval.aggregate import summarize
+
+    recs = records.read_sweep(directory) if directory.is_dir() else []
+    return (summarize(recs), recs) if recs else (None, None)
+
+
+def _ablation_tables(cfg: ReproduceConfig, rows: list[dict]) -> tuple[str, str]:
+    from vitfly.workflows.ablation import AblationConfig, ablation_csv, ablation_markdown, ablation_rows
+
+    acfg = AblationConfig(models=list(cfg.train.nostate_models),
+                          evaluate=eval_stage(cfg, ["spheres", "trees"], cfg.evaluate.ablation_speeds, 1))
+    table = ablation_rows(rows, acfg)
+    return ablation_markdown(table, cfg.evaluate.ablation_speeds), ablation_csv(table)
+
+
+def closed_loop_numbers(rows_by_sweep: dict[str, list[dict] | None], model: str, cfg: ReproduceConfig) -> dict:
+    """Success (the paper's: no collision) per env and speed of one model, for the weights manifest."""
+    out: dict = {"eval_seed": cfg.evaluate.seed, "scene_preset": cfg.evaluate.preset, "success": "no collision"}
+    for sweep in ("spheres", "trees", "window"):
+        for r in rows_by_sweep.get(sweep) or []:
+            if r["policy"] == model:
+                out.setdefault(r["env"], {})[f"{r['speed']:g}"] = {
+                    "success": r["success_paper_rate"], "success_strict": r["success_strict_rate"],
+                    "collisions_per_trial": r["collisions_mean"], "trials": r["trials"]}
+    return out
+
+
+def _training_table(cfg: ReproduceConfig) -> str:
+    import torch
+
+    lines = ["| run | epochs | optimiser steps | training frames | wall time (min) | checkpoint |",
+             "|---|---:|---:|---:|---:|---|"]
+    for model, use_state in runs(cfg):
+        d = cfg.train_dir(model, use_state)
+        ckpt = done_checkpoint(d)
+        if ckpt is None:
+            lines.append(f"| {run_label(model, use_state)} | - | - | - | - | not trained |")
+            continue
+        saved = torch.load(d / "checkpoints" / "last.ckpt", map_location="cpu", weights_only=True) \
+            if (d / "checkpoints" / "last.ckpt").exists() else {}
+        cost = json.loads((d / "cost.json").read_text()) if (d / "cost.json").exists() else {}
+        frames = train_frames(d, cfg.data)
+        wall = f"{cost['wall_s'] / 60:.1f}" if "wall_s" in cost else "-"
+        epochs, steps = saved.get("epoch", -1) + 1, saved.get("global_step", "-")
+        lines.append(f"| {run_label(model, use_state)} | {epochs} | {steps} | {frames if frames is not None else '-'} "
+                     f"| {wall} | {ckpt} |")
+    return "\n".join(lines) + "\n"
+
+
+def stage_report(cfg: ReproduceConfig) -> dict:
+    """Figures, tables, results.md and results.json from whatever the study has flown so far."""
+    from vitfly.eval import paper_figures
+    from vitfly.eval.evaluation import scene_of
+    from vitfly.eval.findings import findings_markdown, paper_findings
+    from vitfly.eval.plots import plot_paths, scene_for_paths
+
+    out, figures = cfg.out_dir, cfg.out_dir / "figures"
+    rows: dict[str, list[dict] | None] = {}
+    recs: dict[str, list] = {}
+    for name in ("spheres", "trees", "window", "ablation", "paths"):
+        rows[name], recs[name] = _summary(cfg.eval_dir(name))
+    files: dict[str, Path] = {}
+    for env in ("spheres", "trees"):
+        if rows[env]:
+            files[f"{env}_collision_metrics"] = paper_figures.collision_metrics_figure(
+                rows[env], env, figures / f"{env}_collision_metrics.png")
+    command_rows = (rows["spheres"] or []) + (rows["trees"] or [])
+    if command_rows:
+        files["command_characteristics"] = paper_figures.command_figure(
+            command_rows, figures / "command_characteristics.png")
+    lateral = {}
+    if recs["paths"]:
+        plan = paths_plan(cfg)
+        scene = scene_of(recs["paths"], "spheres", plan.preset, plan.scene_seed)
+        title = (f"spheres scene seed {plan.scene_seed}, {plan.speed:g} m/s, {plan.repeats} repeats from starts "
+                 f"within ±{plan.jitter_m:g} m: mean path, band ±0.1 σ (top-down, then side)")
+        files["paths_fixed_scene"] = paper_figures.mean_paths_figure(
+            recs["paths"], figures / "paths_fixed_scene.png", scene, title)
+        files["paths_fixed_scene_3d"] = paper_figures.mean_paths_3d_figure(
+            recs["paths"], figures / "paths_fixed_scene_3d.png", scene)
+        lateral = {p: v["max_lateral"] for p, v in paper_figures.mean_paths(recs["paths"]).items()}
+    if recs["window"]:
+        seed, window_recs = scene_for_paths(recs["window"], "window")
+        files["window_paths"] = plot_paths(window_recs, figures / "window_paths.png",
+                                           scene_of(window_recs, "window", window_recs[0].preset, seed),
+                                           title=f"window at {window_recs[0].speed:g} m/s, scene seed {seed}")
+    ablation_md = ""
+    if rows["ablation"]:
+        ablation_md, ablation_csv = _ablation_tables(cfg, rows["ablation"])
+        write_text(out / "ablation.md", ablation_md)
+        write_text(out / "ablation.csv", ablation_csv)
+    latency_md = ""
+    if (out / "latency.json").exists():
+        latency_md = latency_markdown(json.loads((out / "latency.json").read_text())["results"])
+        write_text(out / "latency.md", latency_md)
+    findings = paper_findings(rows["spheres"], rows["trees"], rows["window"], rows["ablation"], lateral)
+    text = results_markdown(cfg, findings_markdown(findings), files, ablation_md, latency_md, lateral)
+    write_text(out / "results.md", text)
+    result = {"preset": cfg.preset, "findings": [f.to_dict() for f in findings],
+              "max_mean_lateral_deviation_m": lateral,
+              "files": {k: str(v) for k, v in files.items()}, "config": dataclasses.asdict(cfg)}
+    write_text(out / "results.json", json.dumps(result, indent=2, default=str) + "\n")
+    if cfg.train.publish_weights:
+        _publish_closed_loop(cfg, rows)
+    print(f"[report] {out / 'results.md'}: " + ", ".join(f"{f.key} {f.verdict}" for f in findings))
+    return result
+
+
+def _publish_closed_loop(cfg: ReproduceConfig, rows: dict) -> None:
+    from vitfly.zoo.pretrained import read_manifest, update_manifest
+
+    manifest = read_manifest(cfg.train.weights_dir, missing_ok=True)["models"]
+    for model in cfg.train.publish_models:
+        ckpt = done_checkpoint(cfg.train_dir(model, True))
+        entry = manifest.get(model)
+        if ckpt is not None and entry and entry.get("source_checkpoint") == str(ckpt.resolve()):
+            update_manifest(model, {"closed_loop": closed_loop_numbers(rows, model, cfg)}, cfg.train.weights_dir)
+
+
+def results_markdown(cfg: ReproduceConfig, findings_md: str, files: dict[str, Path], ablation_md: str,
+                     latency_md: str, lateral: dict[str, float]) -> str:
+    e = cfg.evaluate
+    rel = {k: os.path.relpath(v, cfg.out_dir) for k, v in files.items()}
+    figure_lines = [f"- {k.replace('_', ' ')}: ![{k}]({v})" for k, v in rel.items()]
+    lateral_lines = ["| policy | max mean lateral deviation (m) |", "|---|---:|",
+                     *(f"| {p} | {v:.2f} |" for p, v in lateral.items())] if lateral else ["(paths not flown)"]
+    return "\n".join([
+        f"# vitfly reproduce: the paper's results section (preset `{cfg.preset}`)",
+        "",
+        f"Made by `vitfly reproduce --config ... --preset {cfg.preset}` into `{cfg.out}`. Dataset `{cfg.data}`; "
+        f"scenes of evaluation seed {e.seed} (preset {e.preset}), which the collection never used. Trials per "
+        f"speed: spheres {e.spheres_trials}, trees {e.trees_trials}, window {e.window_trials} (at "
+        f"{', '.join(f'{s:g}' for s in e.window_speeds)} m/s), ablation {e.ablation_trials}. Success is the "
+        "paper's (a trial without a collision) unless a row says strict (goal reached and no collision).",
+        "",
+        "## Findings",
+        "",
+        findings_md,
+        "## Training",
+        "",
+        _training_table(cfg),
+        "## Figures",
+        "",
+        *figure_lines,
+        "",
+        "Per-sweep tables and plots: `eval/<sweep>/summary.md`, `eval/<sweep>/*.png`.",
+        "",
+        f"## Paths in one scene ({cfg.paths.repeats} repeats at {cfg.paths.speed:g} m/s)",
+        "",
+        "Paper: ViT+LSTM takes the most direct path, maximum mean lateral deviation 0.75 m.",
+        "",
+        *lateral_lines,
+        "",
+        "## Ablation: state input",
+        "",
+        ablation_md or "(not evaluated)",
+        "## Latency",
+        "",
+        latency_md or "(not measured)",
+    ]) + "\n"

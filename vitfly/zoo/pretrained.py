@@ -1,0 +1,270 @@
+"""Pretrained weights trained in vitfly: ``weights/<name>.safetensors`` (fp16) + ``weights/manifest.json``.
+
+``load_pretrained(name)`` gives the network (fp32, eval mode) that ``pretrained:NAME`` names on the
+command line; ``save_pretrained(ckpt, name, fields)`` publishes a trained checkpoint there.
+
+Manifest (JSON)::
+
+    {"format": "vitfly.weights", "version": 1,
+     "models": {"vit_lstm": {"file": "vit_lstm.safetensors", "sha256": "...", "dtype": "float16",
+                             "model": "vit_lstm", "use_state": true, "model_kwargs": {},
+                             "epochs": 4, "steps": 480, "source_checkpoint": "...",
+                             "preset": "laptop", "dataset_hash": "...", "train_frames": 63124,
+                             "closed_loop": {...}, ...}}}
+
+``model``/``use_state``/``model_kwargs`` say which registry network to build; the rest is provenance
+(free-form plain values given by the publisher). Loading is safe: safetensors holds raw tensors only
+(no pickle); the file's SHA-256 must equal the manifest's, and its keys and shapes the network's.
+Every failure is one line. Floating-point tensors are stored as fp16 (half the size; the networks'
+outputs move by about 1e-3) and loaded into the network's own dtype; integer buffers keep theirs.
+
+Where: ``directory`` if given, else ``$VITFLY_WEIGHTS_DIR``, else ``weights/`` at the repository root
+(beside the ``vitfly`` package, as in a clone or an editable install), else ``./weights``.
+
+Publishing writes the weights file and then the manifest, each atomically (temporary file + rename).
+A kill between the two leaves a manifest whose hash does not match the file: loading refuses it with
+one line and publishing again repairs it; a half-written file is never visible.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import re
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any
+
+import torch
+from torch import nn
+
+from vitfly.atomic import atomic_path, write_text
+from vitfly.errors import VitflyError
+from vitfly.zoo.legacy import check_state_dict, read_torch_file
+from vitfly.zoo.registry import create_model, list_models
+
+PRETRAINED_PREFIX = "pretrained:"
+WEIGHTS_ENV = "VITFLY_WEIGHTS_DIR"
+MANIFEST_NAME = "manifest.json"
+MANIFEST_FORMAT = "vitfly.weights"
+MANIFEST_VERSION = 1
+STORED_DTYPE = torch.float16
+NAME_PATTERN = re.compile(r"[A-Za-z0-9][A-Za-z0-9_.-]*")
+RESERVED_FIELDS = ("file", "sha256", "dtype", "model", "use_state", "model_kwargs")
+
+
+def weights_dir(directory: str | os.PathLike | None = None) -> Path:
+    """The weights directory: ``directory``, else ``$VITFLY_WEIGHTS_DIR``, else ``<repository>/weights`` when it
+    holds a manifest, else ``./weights``."""
+    if directory is not None:
+        return Path(directory)
+    if os.environ.get(WEIGHTS_ENV):
+        return Path(os.environ[WEIGHTS_ENV])
+    beside_package = Path(__file__).resolve().parents[2] / "weights"
+    if (beside_package / MANIFEST_NAME).is_file() or not (Path.cwd() / "weights" / MANIFEST_NAME).is_file():
+        return beside_package
+    return Path.cwd() / "weights"
+
+
+def is_pretrained_spec(spec: str) -> bool:
+    return isinstance(spec, str) and spec.startswith(PRETRAINED_PREFIX)
+
+
+def pretrained_name(spec: str) -> str:
+    """``pretrained:NAME`` -> NAME (checked)."""
+    name = spec[len(PRETRAINED_PREFIX):] if is_pretrained_spec(spec) else spec
+    check_name(name)
+    return name
+
+
+def check_name(name: str) -> str:
+    if not isinstance(name, str) or not NAME_PATTERN.fullmatch(name):
+        raise VitflyError(f"pretrained name {name!r}: expected letters, digits, '_', '.' or '-' (e.g. vit_lstm)")
+    return name
+
+
+def empty_manifest() -> dict:
+    return {"format": MANIFEST_FORMAT, "version": MANIFEST_VERSION, "models": {}}
+
+
+def read_manifest(directory: str | os.PathLike | None = None, missing_ok: bool = False) -> dict:
+    """The manifest of the weights directory (an empty one if absent and ``missing_ok``)."""
+    path = weights_dir(directory) / MANIFEST_NAME
+    if not path.is_file():
+        if missing_ok:
+            return empty_manifest()
+        raise VitflyError(f"{path}: no pretrained weights manifest (publish weights with `vitfly publish-weights` "
+                          f"or point {WEIGHTS_ENV} at a weights directory)")
+    try:
+        data = json.loads(path.read_text())
+    except (OSError, ValueError) as err:
+        raise VitflyError(f"{path}: not a readable JSON manifest ({err})") from None
+    if not isinstance(data, dict) or data.get("format") != MANIFEST_FORMAT:
+        raise VitflyError(f"{path}: field 'format' is not {MANIFEST_FORMAT!r}")
+    if data.get("version") != MANIFEST_VERSION:
+        raise VitflyError(f"{path}: field 'version' is {data.get('version')!r}, expected {MANIFEST_VERSION}")
+    if not isinstance(data.get("models"), dict):
+        raise VitflyError(f"{path}: field 'models' must be a mapping of names to entries")
+    return data
+
+
+def manifest_entry(name: str, directory: str | os.PathLike | None = None) -> dict:
+    """The manifest entry of ``name`` (one line naming the available ones if it has none)."""
+    check_name(name)
+    manifest = read_manifest(directory)
+    entry = manifest["models"].get(name)
+    if not isinstance(entry, dict):
+        available = ", ".join(sorted(manifest["models"])) or "none yet"
+        raise VitflyError(f"pretrained:{name}: not in {weights_dir(directory) / MANIFEST_NAME} "
+                          f"(available: {available})")
+    return entry
+
+
+def file_sha256(path: str | os.PathLike) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        for block in iter(lambda: f.read(1 << 20), b""):
+            h.update(block)
+    return h.hexdigest()
+
+
+def _entry_field(entry: Mapping, key: str, kind: type, source: str):
+    value = entry.get(key)
+    if not isinstance(value, kind) or (kind is not bool and isinstance(value, bool)):
+        raise VitflyError(f"{source}: field {key!r} must be a {kind.__name__}, got {value!r}")
+    return value
+
+
+def load_pretrained(name: str, directory: str | os.PathLike | None = None) -> nn.Module:
+    """The published network ``name`` (``pretrained:NAME`` also accepted), fp32, in eval mode."""
+    from safetensors import SafetensorError
+    from safetensors.torch import load_file
+
+    name = pretrained_name(name)
+    root = weights_dir(directory)
+    entry = manifest_entry(name, root)
+    source = f"{root / MANIFEST_NAME} models.{name}"
+    file_name = _entry_field(entry, "file", str, source)
+    expected_sha = _entry_field(entry, "sha256", str, source)
+    arch = _entry_field(entry, "model", str, source)
+    use_state = _entry_field(entry, "use_state", bool, source)
+    model_kwargs = entry.get("model_kwargs") or {}
+    if not isinstance(model_kwargs, dict):
+        raise VitflyError(f"{source}: field 'model_kwargs' must be a mapping, got {model_kwargs!r}")
+    if Path(file_name).name != file_name:
+        raise VitflyError(f"{source}: field 'file' must be a file name inside {root}, got {file_name!r}")
+    path = root / file_name
+    if not path.is_file():
+        raise VitflyError(f"{path}: missing (the manifest lists it for pretrained:{name}); "
+                          "restore it (git checkout weights/) or publish it again")
+    actual_sha = file_sha256(path)
+    if actual_sha != expected_sha:
+        raise VitflyError(f"{path}: sha256 {actual_sha[:12]}... differs from the manifest's {expected_sha[:12]}... "
+                          "(changed, truncated or from another publish); refusing to load it")
+    if arch not in list_models():
+        raise VitflyError(f"{source}: field 'model' is {arch!r}; known models: {', '.join(list_models())}")
+    try:
+        net = create_model(arch, use_state=use_state, **model_kwargs)
+    except TypeError as err:
+        raise VitflyError(f"{source}: model_kwargs do not fit model {arch!r}: {err}") from None
+    try:
+        stored = load_file(str(path), device="cpu")
+    except (SafetensorError, OSError, ValueError) as err:
+        raise VitflyError(f"{path}: not a readable safetensors file ({str(err).splitlines()[0]})") from None
+    stored = check_state_dict(net, stored, arch, str(path))
+    own = net.state_dict()
+    net.load_state_dict({k: v.to(own[k].dtype) for k, v in stored.items()})
+    return net.eval()
+
+
+def _checkpoint_parts(ckpt_path: str | os.PathLike) -> tuple[nn.Module, dict, dict]:
+    """(network, hyper_parameters, the checkpoint's own provenance: epochs, steps) of a vitfly checkpoint."""
+    from vitfly.zoo.checkpoint import network_from_checkpoint_dict
+
+    source = os.fspath(ckpt_path)
+    obj = read_torch_file(ckpt_path)
+    if not isinstance(obj, Mapping) or "state_dict" not in obj:
+        raise VitflyError(f"{source}: not a vitfly/Lightning checkpoint (a dict with state_dict and "
+                          "hyper_parameters); convert original state dicts with `vitfly convert-checkpoint` first")
+    net = network_from_checkpoint_dict(obj, source)
+    hparams = dict(obj["hyper_parameters"])
+    provenance = {"source_checkpoint": os.path.abspath(source)}
+    if "epoch" in obj:
+        provenance["epochs"] = int(obj["epoch"]) + 1  # Lightning stores the index of the last finished epoch
+    if "global_step" in obj:
+        provenance["steps"] = int(obj["global_step"])  # optimiser steps (one per TBPTT chunk)
+    return net, hparams, provenance
+
+
+def fp16_state_dict(net: nn.Module, source: str) -> dict[str, torch.Tensor]:
+    """The network's state dict with floating tensors as fp16 (refused if a value does not fit fp16)."""
+    out = {}
+    for key, value in net.state_dict().items():
+        value = value.detach().cpu().contiguous()
+        if value.is_floating_point():
+            half = value.to(STORED_DTYPE)
+            if not torch.isfinite(half).all() and torch.isfinite(value).all():
+                raise VitflyError(f"{source}: tensor {key} has values beyond fp16's range (|x| > 65504)")
+            value = half
+        out[key] = value.clone()
+    return out
+
+
+def _plain(value: Any, source: str, key: str) -> Any:
+    try:
+        return json.loads(json.dumps(value, allow_nan=False))
+    except (TypeError, ValueError):
+        raise VitflyError(f"{source}: manifest field {key!r} must be plain JSON (numbers, text, lists, maps), "
+                          f"got {value!r}") from None
+
+
+def save_pretrained(ckpt_path: str | os.PathLike, name: str, manifest_fields: Mapping | None = None,
+                    directory: str | os.PathLike | None = None) -> Path:
+    """Publish a trained vitfly checkpoint as ``<dir>/<name>.safetensors`` (fp16) + its manifest entry.
+
+    ``manifest_fields`` (plain values: preset, dataset_hash, train_frames, closed_loop, ...) join the
+    entry beside what the checkpoint itself says (registry model, use_state, model_kwargs, epochs,
+    steps). Returns the weights file's path.
+    """
+    from safetensors.torch import save_file
+
+    check_name(name)
+    source = os.fspath(ckpt_path)
+    fields = dict(manifest_fields or {})
+    clash = sorted(set(fields) & set(RESERVED_FIELDS))
+    if clash:
+        raise VitflyError(f"{source}: manifest field {clash[0]!r} is written by the publisher itself")
+    fields = {k: _plain(v, source, k) for k, v in fields.items()}
+    root = weights_dir(directory)
+    manifest = read_manifest(root, missing_ok=True)  # a broken manifest is refused before anything is written
+    net, hparams, provenance = _checkpoint_parts(ckpt_path)
+    tensors = fp16_state_dict(net, source)
+    model_kwargs = dict(hparams.get("model_kwargs") or {})
+    header = {"format": MANIFEST_FORMAT, "model": str(hparams["model"]),
+              "use_state": json.dumps(bool(hparams.get("use_state", True))), "model_kwargs": json.dumps(model_kwargs)}
+    path = root / f"{name}.safetensors"
+    with atomic_path(path) as tmp:
+        save_file(tensors, str(tmp), metadata=header)
+    entry = {"file": path.name, "sha256": file_sha256(path), "dtype": "float16", "model": str(hparams["model"]),
+             "use_state": bool(hparams.get("use_state", True)),
+             "model_kwargs": _plain(model_kwargs, source, "model_kwargs"), **provenance, **fields}
+    manifest["models"][name] = entry
+    manifest["models"] = dict(sorted(manifest["models"].items()))
+    write_text(root / MANIFEST_NAME, json.dumps(manifest, indent=2) + "\n")
+    return path
+
+
+def update_manifest(name: str, fields: Mapping, directory: str | os.PathLike | None = None) -> dict:
+    """Add or replace provenance ``fields`` of a published entry (e.g. its closed-loop numbers)."""
+    root = weights_dir(directory)
+    entry = manifest_entry(name, root)
+    source = f"{root / MANIFEST_NAME} models.{name}"
+    clash = sorted(set(fields) & set(RESERVED_FIELDS))
+    if clash:
+        raise VitflyError(f"{source}: field {clash[0]!r} is written by the publisher itself")
+    manifest = read_manifest(root)
+    entry = {**entry, **{k: _plain(v, source, k) for k, v in fields.items()}}
+    manifest["models"][name] = entry
+    write_text(root / MANIFEST_NAME, json.dumps(manifest, indent=2) + "\n")
+    return entry
