@@ -7,7 +7,8 @@
 - ``aggregate``, ``report``, ``plots``, ``wandb_log``: summaries, CSV/Markdown, figures, wandb;
 - ``evaluation``: sweep + reports + GIF as one call;
 - ``pipeline``: ``vitfly pipeline``, the main job; ``ablation``: ``vitfly ablate --no-state``;
-- ``latency``: the paper's latency table (``vitfly benchmark-latency``).
+- ``latency``: the paper's latency table (``vitfly benchmark-latency``);
+- ``explain``: attention and Grad-CAM maps over a flight, with consistency numbers (``vitfly explain``).
 
 Submodules are imported on use, so ``import vitfly.eval`` stays light.
 """
