@@ -238,7 +238,8 @@ def test_explain_command_end_to_end(tmp_path, capsys):
                                                      "attention_stage0", "attention_stage1")),
     }
     for name in ("strip_tiny.png", "strip_vit_lstm_random_weights.png", "side_by_side.png"):
-        assert Image.open(out / name).size[0] > 400
+        with Image.open(out / name) as im:
+            assert im.size[0] > 400
     for name in ("tiny.gif", "vit_lstm_random_weights.gif", "side_by_side.gif"):
         with Image.open(out / name) as im:
             assert im.n_frames == 3  # ticks 0, 2, 4
