@@ -25,6 +25,7 @@ SUBCOMMANDS: dict[str, tuple[str, str]] = {
     "convert-checkpoint": ("convert_checkpoint", "turn an original-project state dict into a vitfly checkpoint"),
     "export": ("export", "export a network for deployment (ONNX)"),
     "render": ("render", "draw a scene, a flown path and depth frames to PNG/GIF"),
+    "explain": ("explain", "attention and Grad-CAM maps of networks over one trial (PNG, GIF, consistency numbers)"),
     "pipeline": ("pipeline", "the main job: collect if missing, train, fly against expert and straight, report"),
     "reproduce": ("reproduce", "the paper's results section: data, 11 trainings, every evaluation, results.md"),
     "publish-weights": ("publish_weights", "a trained checkpoint as weights/NAME.safetensors (fp16) + manifest"),

@@ -9,7 +9,8 @@
 - ``evaluation``: sweep + reports + GIF as one call;
 - ``repeats``: repeated trials of one fixed scene from jittered starts, and their mean path;
 - ``paper_figures``: the paper's results figures; ``findings``: each paper finding checked, with intervals;
-- ``latency``: the paper's latency table (``vitfly benchmark-latency``).
+- ``latency``: the paper's latency table (``vitfly benchmark-latency``);
+- ``explain``: attention and Grad-CAM maps over a flight, with consistency numbers (``vitfly explain``).
 
 The end-to-end jobs (``vitfly pipeline``, ``ablate``, ``reproduce``) are in :mod:`vitfly.workflows`.
 

@@ -41,6 +41,9 @@ class DepthPolicyNet(nn.Module):
 
     is_recurrent: bool = False
     model_name: str = ""  # the registry name of the architecture
+    # dotted names of the modules whose outputs (N, C, h, w) are the encoder's last spatial feature maps:
+    # together they carry everything the image passes to the head (Grad-CAM attributes there)
+    spatial_layers: tuple[str, ...] = ()
 
     def __init__(self, use_state: bool = True) -> None:
         super().__init__()

@@ -20,6 +20,7 @@ class ConvNet(DepthPolicyNet):
     """Feed-forward CNN; every frame is processed independently (hidden is always None)."""
 
     model_name = "convnet"
+    spatial_layers = ("feature_map",)
     feature_dim = 10 * 7 * 12
 
     def __init__(self, use_state: bool = True) -> None:
@@ -27,6 +28,7 @@ class ConvNet(DepthPolicyNet):
         self.conv1 = nn.Conv2d(1, 4, kernel_size=3, stride=3)
         self.bn1 = nn.BatchNorm2d(4)
         self.conv2 = nn.Conv2d(4, 10, kernel_size=3, stride=2)
+        self.feature_map = nn.Identity()  # hook point: the last spatial features (no parameters)
         self.fc0 = nn.Linear(self.feature_dim + STATE_DIM, 256, bias=False)
         self.fc1 = nn.Linear(256, 64, bias=False)
         self.fc2 = nn.Linear(64, 32, bias=False)
@@ -34,7 +36,7 @@ class ConvNet(DepthPolicyNet):
 
     def encode(self, frames: torch.Tensor) -> torch.Tensor:
         x = min_pool2d(self.bn1(F.relu(self.conv1(frames))), 2, 1)  # (N, 4, 19, 29)
-        x = F.avg_pool2d(F.relu(self.conv2(x)), 3, 1)  # (N, 10, 7, 12)
+        x = self.feature_map(F.avg_pool2d(F.relu(self.conv2(x)), 3, 1))  # (N, 10, 7, 12)
         return x.flatten(1)
 
     def head(self, features: torch.Tensor, state: torch.Tensor, hidden: Hidden | None = None):

@@ -21,6 +21,7 @@ class LSTMNet(DepthPolicyNet):
     """CNN encoder + LSTM over the frames of each sequence."""
 
     model_name = "lstmnet"
+    spatial_layers = ("feature_map",)
     is_recurrent = True
     feature_dim = 10 * 6 * 11
 
@@ -30,6 +31,7 @@ class LSTMNet(DepthPolicyNet):
         self.bn1 = nn.BatchNorm2d(4)
         self.conv2 = nn.Conv2d(4, 10, kernel_size=3, stride=2)
         self.bn2 = nn.BatchNorm2d(10)
+        self.feature_map = nn.Identity()  # hook point: the last spatial features (no parameters)
         self.lstm = nn.LSTM(
             self.feature_dim + STATE_DIM, 395, num_layers=2, dropout=lstm_dropout, bias=False, batch_first=True
         )
@@ -39,7 +41,7 @@ class LSTMNet(DepthPolicyNet):
 
     def encode(self, frames: torch.Tensor) -> torch.Tensor:
         x = min_pool2d(self.bn1(F.relu(self.conv1(frames))), 3, 1)  # (N, 4, 18, 28)
-        x = F.avg_pool2d(self.bn2(F.relu(self.conv2(x))), 3, 1)  # (N, 10, 6, 11)
+        x = self.feature_map(F.avg_pool2d(self.bn2(F.relu(self.conv2(x))), 3, 1))  # (N, 10, 6, 11)
         return x.flatten(1)
 
     def head(self, features: torch.Tensor, state: torch.Tensor, hidden: Hidden | None = None):

@@ -67,13 +67,38 @@ class EfficientSelfAttention(nn.Module):
         patches = grid.reshape(-1, hr, r, wr, r, c).permute(0, 1, 3, 5, 2, 4).reshape(-1, hr * wr, c * r * r)
         return torch.nn.functional.linear(patches, self.cn1.weight.reshape(self.cn1.out_channels, -1), self.cn1.bias)
 
-    def forward(self, x: torch.Tensor, h: int, w: int) -> torch.Tensor:
+    def key_grid(self, h: int, w: int) -> tuple[int, int]:
+        """(rows, columns) of the reduced key/value grid for an (h, w) token grid: (h // R, w // R).
+
+        Key (i, j) summarises tokens [i R, (i + 1) R) x [j R, (j + 1) R); the last h % R rows and
+        w % R columns of tokens are never keys (the reduction convolution has no padding).
+        """
+        r = self.cn1.kernel_size[0]
+        return h // r, w // r
+
+    def project(self, x: torch.Tensor, h: int, w: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """Queries (N, heads, L, d) from the tokens; keys and values (N, heads, L', d) from the reduced grid."""
         n, length, c = x.shape
         d = c // self.num_heads
         reduced = self.ln1(self.reduce(x, h, w))  # (N, L', C)
         kv = self.keyValueExtractor(reduced).reshape(n, -1, 2, self.num_heads, d).permute(2, 0, 3, 1, 4)
         q = self.query(x).reshape(n, length, self.num_heads, d).transpose(1, 2)  # (N, heads, L, d)
-        out = F.scaled_dot_product_attention(q, kv[0], kv[1])  # softmax(q k^T / sqrt(d)) v
+        return q, kv[0], kv[1]
+
+    def attention_weights(self, x: torch.Tensor, h: int, w: int) -> torch.Tensor:
+        """softmax(q k^T / sqrt(d)): (N, heads, L, L'), each query's weights over the keys (rows sum to 1).
+
+        The forward pass gets the same weights inside a fused kernel that does not return them; call
+        this (e.g. from a forward hook on this module, with its inputs) to see them. Keys are in
+        row-major order of ``key_grid(h, w)``.
+        """
+        q, k, _ = self.project(x, h, w)
+        return torch.softmax((q @ k.transpose(-2, -1)) * q.shape[-1] ** -0.5, dim=-1)
+
+    def forward(self, x: torch.Tensor, h: int, w: int) -> torch.Tensor:
+        n, length, c = x.shape
+        q, k, v = self.project(x, h, w)
+        out = F.scaled_dot_product_attention(q, k, v)  # softmax(q k^T / sqrt(d)) v
         return self.finalLayer(out.transpose(1, 2).reshape(n, length, c))
 
 

@@ -20,6 +20,7 @@ class ResNet18Policy(DepthPolicyNet):
     """timm ResNet-18 encoder + small MLP head; frames are independent (hidden is always None)."""
 
     model_name = "resnet18"
+    spatial_layers = ("encoder.layer4",)  # (N, 512, 2, 3) before timm's global pooling
 
     def __init__(self, use_state: bool = True, head_hidden: int = 256) -> None:
         super().__init__(use_state)

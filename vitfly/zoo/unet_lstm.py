@@ -25,6 +25,8 @@ class UNetLSTM(DepthPolicyNet):
     """U-Net encoder/decoder + conv branch + LSTM head."""
 
     model_name = "unet_lstm"
+    # the head sees the conv branch and the U-Net bottleneck: both spatial maps, together
+    spatial_layers = ("branch_map", "bottleneck_map")
     is_recurrent = True
     feature_dim = 10 * 6 * 11 + 16 * 10 * 15
 
@@ -43,6 +45,9 @@ class UNetLSTM(DepthPolicyNet):
         self.conv_conv1 = nn.Conv2d(2, 4, kernel_size=5, stride=3)
         self.conv_bn1 = nn.BatchNorm2d(4)
         self.conv_conv2 = nn.Conv2d(4, 10, kernel_size=5, stride=2)
+        # hook points (no parameters): the two spatial maps the head reads
+        self.branch_map = nn.Identity()
+        self.bottleneck_map = nn.Identity()
         self.lstm = nn.LSTM(
             self.feature_dim + STATE_DIM, 200, num_layers=2, dropout=lstm_dropout, bias=False, batch_first=True
         )
@@ -65,8 +70,8 @@ class UNetLSTM(DepthPolicyNet):
         y_unet, y_e3 = self.unet(frames)
         x = torch.cat((frames, y_unet), dim=1)
         x = min_pool2d(F.relu(self.conv_bn1(self.conv_conv1(x))), 2, 1)  # (N, 4, 18, 28)
-        x = F.avg_pool2d(F.relu(self.conv_conv2(x)), 2, 1)  # (N, 10, 6, 11)
-        return torch.cat((x.flatten(1), y_e3.flatten(1)), dim=1)
+        x = self.branch_map(F.avg_pool2d(F.relu(self.conv_conv2(x)), 2, 1))  # (N, 10, 6, 11)
+        return torch.cat((x.flatten(1), self.bottleneck_map(y_e3).flatten(1)), dim=1)
 
     def head(self, features: torch.Tensor, state: torch.Tensor, hidden: Hidden | None = None):
         x, hidden = run_lstm(self.lstm, torch.cat((features, state), dim=-1), hidden)

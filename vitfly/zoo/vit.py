@@ -24,6 +24,8 @@ FUSED_DIM = 12 * 16 * 24
 class ViTBackbone(DepthPolicyNet):
     """The two mix-transformer stages and their fusion; ``fused_features`` gives (N, 4608)."""
 
+    spatial_layers = ("down_sample",)  # the fused (N, 12, 16, 24) map, flattened into the decoder
+
     def __init__(self, use_state: bool = True) -> None:
         super().__init__(use_state)
         self.encoder_blocks = nn.ModuleList(
