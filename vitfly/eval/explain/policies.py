@@ -4,7 +4,7 @@
   from its keys), loaded by ``vitfly.zoo.load_network`` (``torch.load(weights_only=True)``);
 - ``random:NAME``: the registered architecture NAME with seeded random weights, labelled
   "(random weights)" everywhere it appears: useful to see the method, meaningless as a finding;
-- ``pretrained:NAME``: shipped pretrained weights, once vitfly.zoo provides them.
+- ``pretrained:NAME``: published pretrained weights (``vitfly.zoo.load_pretrained``).
 """
 
 from __future__ import annotations
@@ -20,7 +20,6 @@ from torch import nn
 from vitfly.errors import VitflyError
 
 RANDOM_PREFIX = "random:"
-PRETRAINED_PREFIX = "pretrained:"
 
 
 @dataclass
@@ -45,11 +44,11 @@ def load_policy(spec: str, label: str | None = None, init_seed: int = 0) -> Expl
             torch.manual_seed(init_seed)
             net = create_model(name).eval()
         return ExplainedPolicy(label or f"{name} (random weights)", spec, net, name, random_weights=True)
-    if spec.startswith(PRETRAINED_PREFIX):
-        raise VitflyError(
-            f"--policy {spec}: this vitfly ships no pretrained weights yet; give a checkpoint path or "
-            f"random:NAME (an architecture with random weights)"
-        )
+    if spec.startswith("pretrained:"):
+        from vitfly.zoo.pretrained import load_pretrained, pretrained_name
+
+        name = pretrained_name(spec)
+        return ExplainedPolicy(label or name, spec, load_pretrained(name).eval(), name)
     if not Path(spec).is_file():
         raise VitflyError(f"--policy {spec}: no such checkpoint file (or use random:NAME for random weights)")
     net = load_network(spec)
