@@ -6,11 +6,13 @@ import json
 import subprocess
 import sys
 
+import numpy as np
 import pytest
 import torch
 from safetensors.torch import load_file, save_file
 
 from vitfly.errors import VitflyError
+from vitfly.eval import records
 from vitfly.eval.policy_source import PolicySource
 from vitfly.zoo import create_model, load_pretrained, save_checkpoint, save_pretrained
 from vitfly.zoo.pretrained import file_sha256, read_manifest, update_manifest
@@ -145,3 +147,22 @@ def test_shipped_manifest_is_valid():
     for name, entry in manifest["models"].items():
         load_pretrained(name)  # every shipped entry loads (hash, keys, shapes)
         assert entry["dtype"] == "float16"
+
+
+def test_published_weights_fly_with_their_training_sensor(tmp_path):
+    # a checkpoint trained at 15 Hz: its published weights must fly at 15 Hz too (steps of 1/15 s), not the default 30
+    ckpt = tmp_path / "convnet15.ckpt"
+    save_checkpoint(create_model("convnet"), "convnet", True, ckpt,
+                    sensor={"depth_max_m": 10.0, "camera": None, "control_hz": 15.0})
+    weights = tmp_path / "weights"
+    save_pretrained(ckpt, "convnet", {}, weights)
+    assert read_manifest(weights)["models"]["convnet"]["sensor"]["control_hz"] == 15.0
+    env = {**__import__("os").environ, "VITFLY_WEIGHTS_DIR": str(weights)}
+    out = tmp_path / "eval"
+    run = subprocess.run(
+        [sys.executable, "-m", "vitfly.cli", "evaluate", "--policy", "pretrained:convnet", "--speeds", "7",
+         "--trials", "1", "--out", str(out), "--no-gif", "--no-plots", "--no-progress", "--timeout", "2"],
+        capture_output=True, text=True, env=env)
+    assert run.returncode == 0, run.stderr
+    (rec,) = records.read_sweep(out)
+    np.testing.assert_allclose(np.diff(rec.path_arrays()["time"]), 1 / 15, atol=1e-3)  # one tick = 1 / 15 s

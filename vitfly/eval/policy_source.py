@@ -55,6 +55,10 @@ class PolicySource:
         policies and for checkpoints that do not record one."""
         if self.is_builtin:
             return None
+        if self.is_pretrained:  # published weights carry their checkpoint's sensor in the manifest
+            from vitfly.zoo.pretrained import manifest_entry, pretrained_name
+
+            return manifest_entry(pretrained_name(self.spec)).get("sensor")
         from vitfly.zoo.checkpoint import load_sensor
 
         return load_sensor(self.spec)

@@ -51,7 +51,7 @@ MANIFEST_FORMAT = "vitfly.weights"
 MANIFEST_VERSION = 1
 STORED_DTYPE = torch.float16
 NAME_PATTERN = re.compile(r"[A-Za-z0-9][A-Za-z0-9_.-]*")
-RESERVED_FIELDS = ("file", "sha256", "dtype", "model", "use_state", "model_kwargs")
+RESERVED_FIELDS = ("file", "sha256", "dtype", "model", "use_state", "model_kwargs", "sensor")
 
 
 def weights_dir(directory: str | os.PathLike | None = None) -> Path:
@@ -180,7 +180,7 @@ def load_pretrained(name: str, directory: str | os.PathLike | None = None) -> nn
 
 def _checkpoint_parts(ckpt_path: str | os.PathLike) -> tuple[nn.Module, dict, dict]:
     """(network, hyper_parameters, the checkpoint's own provenance: epochs, steps) of a vitfly checkpoint."""
-    from vitfly.zoo.checkpoint import network_from_checkpoint_dict
+    from vitfly.zoo.checkpoint import network_from_checkpoint_dict, read_sensor
 
     source = os.fspath(ckpt_path)
     obj = read_torch_file(ckpt_path)
@@ -190,6 +190,9 @@ def _checkpoint_parts(ckpt_path: str | os.PathLike) -> tuple[nn.Module, dict, di
     net = network_from_checkpoint_dict(obj, source)
     hparams = dict(obj["hyper_parameters"])
     provenance = {"source_checkpoint": os.path.abspath(source)}
+    sensor = read_sensor(obj, source)
+    if sensor is not None:  # the depth range, camera and control rate the network was trained with
+        provenance["sensor"] = sensor
     if "epoch" in obj:
         provenance["epochs"] = int(obj["epoch"]) + 1  # Lightning stores the index of the last finished epoch
     if "global_step" in obj:
