@@ -180,7 +180,9 @@ def test_scene_edges_of_a_box_face_match_its_projection():
     # by hand, pixel ray (1, u, v) hits it when |5 u| <= 1 and |5 v| <= 1; edges = face pixels with a
     # 4-neighbour off the face (10 m of nothing or the far ground behind); the ground's own jumps do not count
     scene = Scene("window", "medium", 0, np.zeros((0, 4)), np.zeros((0, 5)), np.array([[5, -1, 2.5, 6, 1, 4.5]]))
-    camera = CameraConfig()
+    # a square-pixel 90 degree camera at the body origin keeps the hand arithmetic short (any geometry works)
+    camera = CameraConfig(horizontal_fov_deg=90.0, vertical_fov_deg=2 * math.degrees(math.atan(2 / 3)),
+                          mount_offset_m=(0.0, 0.0, 0.0))
     masks, mismatch = scene_edge_masks(scene, camera, np.array([[0.0, 0.0, 3.5]]), np.array([[1.0, 0, 0, 0]]),
                                        config=EdgeConfig(width_px=0))  # fmt: skip
     tan_h = 1.0  # tan(90 deg / 2)
