@@ -1,0 +1,62 @@
+"""int8 versions of exported policies for ONNX Runtime on CPUs with int8 dot-product units (AVX512-VNNI).
+
+``quantize_int8(model_bytes)`` applies ONNX Runtime's *dynamic* quantisation to the large matrix products
+only (``MatMul``/``Gemm`` whose weight has at least ``min_weight_elements`` entries): their weights are stored
+as int8 (one scale per tensor), and each call quantises the product's input to uint8 from its own range
+and runs the product with integer arithmetic. Convolutions, attention products on activations, norms and
+activations stay float32. At batch 1 these products are memory-bound (the ViT+LSTM's fused 4608 -> 512 input
+product alone is 9.4 MB of float32 weights; the LSTMs' several MB more), so int8 weights read a quarter of the
+bytes. Dynamic quantisation needs no calibration data, so it cannot be mis-calibrated for a scene.
+
+What was tried and dropped (``benchmarks/latency.py``): static (calibrated) int8 of the convolutions too, in
+both QDQ and QOperator form -- the ViT's grouped 3x3 convolutions and the LSTMs' products became slower
+than float32; dynamic int8 convolutions (ConvInteger) -- slower than ONNX Runtime's float32 NCHWc
+kernels. ONNX Runtime has no bf16 CPU kernels on x86.
+
+The quantised graph computes a different function; ``vitfly.eval.agreement`` measures how far its
+commands are from the float32 network's over recorded flights.
+"""
+
+from __future__ import annotations
+
+import tempfile
+from pathlib import Path
+
+import onnx
+from onnx import numpy_helper
+
+PRECISIONS = ("fp32", "int8")
+# smaller products gain nothing from int8 at batch 1: the per-call input quantisation costs more than it saves
+MIN_WEIGHT_ELEMENTS = 16_384
+
+
+def _large_products(model: onnx.ModelProto, min_weight_elements: int) -> list[str]:
+    """Names of the MatMul/Gemm nodes whose second input is an initializer of at least ``min_weight_elements``."""
+    sizes = {init.name: numpy_helper.to_array(init).size for init in model.graph.initializer}
+    return [
+        node.name
+        for node in model.graph.node
+        if node.op_type in ("MatMul", "Gemm") and sizes.get(node.input[1], 0) >= min_weight_elements
+    ]
+
+
+def quantize_int8(model_bytes: bytes, min_weight_elements: int = MIN_WEIGHT_ELEMENTS) -> bytes:
+    """The int8 (dynamic, weight-only-stored) version of an exported vitfly policy; metadata kept, plus
+    ``vitfly.precision = int8``."""
+    from onnxruntime.quantization import QuantType, quantize_dynamic
+
+    model = onnx.load_from_string(model_bytes)
+    metadata = {p.key: p.value for p in model.metadata_props}
+    nodes = _large_products(model, min_weight_elements)
+    with tempfile.TemporaryDirectory(prefix="vitfly-int8-") as tmp:
+        out = Path(tmp) / "int8.onnx"
+        if nodes:
+            quantize_dynamic(model, out, op_types_to_quantize=["MatMul", "Gemm"], nodes_to_quantize=nodes,
+                             weight_type=QuantType.QInt8, per_channel=False, reduce_range=False)  # fmt: skip
+            model = onnx.load(out)
+    metadata["vitfly.precision"] = "int8"
+    del model.metadata_props[:]
+    for key, value in metadata.items():
+        entry = model.metadata_props.add()
+        entry.key, entry.value = key, value
+    return model.SerializeToString()
