@@ -75,13 +75,14 @@ def export_onnx_bytes(
     """The ONNX model of ``net`` (a zoo network) as bytes; see the module docstring for the signature.
 
     ``batch_size`` None gives a dynamic batch axis; an int fixes it (a leaner graph: batch-1 deployment).
-    ``precision`` "int8" quantises the large matrix products (``vitfly.deploy.quantize``).
+    ``precision`` "int8" quantises the large matrix products (``vitfly.deploy.quantize``) and, with
+    ``optimize``, takes the tanh approximation of GELU (``inference_copy``).
     """
     if precision not in PRECISIONS:
         raise VitflyError(f"precision must be one of {', '.join(PRECISIONS)}, got {precision!r}")
     net = net.eval()
     state_shape = _state_shape(net)
-    graph_net = inference_copy(net) if optimize else net
+    graph_net = inference_copy(net, approximate_gelu=precision == "int8") if optimize else net
     example_batch = EXPORT_BATCH if batch_size is None else batch_size
     args = example_inputs(net, example_batch)
     dynamic: dict[str, dict[int, object]] | None = None

@@ -28,16 +28,45 @@ from onnx import numpy_helper
 PRECISIONS = ("fp32", "int8")
 # smaller products gain nothing from int8 at batch 1: the per-call input quantisation costs more than it saves
 MIN_WEIGHT_ELEMENTS = 16_384
+PER_CHANNEL = True
 
 
 def _large_products(model: onnx.ModelProto, min_weight_elements: int) -> list[str]:
-    """Names of the MatMul/Gemm nodes whose second input is an initializer of at least ``min_weight_elements``."""
+    """Names of the MatMul nodes whose second input is an initializer of at least ``min_weight_elements``."""
     sizes = {init.name: numpy_helper.to_array(init).size for init in model.graph.initializer}
     return [
         node.name
         for node in model.graph.node
-        if node.op_type in ("MatMul", "Gemm") and sizes.get(node.input[1], 0) >= min_weight_elements
+        if node.op_type == "MatMul" and sizes.get(node.input[1], 0) >= min_weight_elements
     ]
+
+
+def _gemms_as_matmuls(model: onnx.ModelProto, min_weight_elements: int) -> None:
+    """Rewrite large ``Gemm(A, W, C)`` (constant W, alpha = beta = 1, no transA) as ``MatMul(A, W') + C`` in place.
+
+    ONNX Runtime quantises MatMul dynamically but not Gemm (what a 2-D ``nn.Linear`` exports to).
+    """
+    inits = {init.name: init for init in model.graph.initializer}
+    nodes = []
+    for index, node in enumerate(model.graph.node):
+        attrs = {a.name: onnx.helper.get_attribute_value(a) for a in node.attribute}
+        weight = inits.get(node.input[1]) if node.op_type == "Gemm" and len(node.input) > 1 else None
+        plain = attrs.get("alpha", 1.0) == 1.0 and attrs.get("beta", 1.0) == 1.0 and not attrs.get("transA", 0)
+        if weight is None or not plain or numpy_helper.to_array(weight).size < min_weight_elements:
+            nodes.append(node)
+            continue
+        w = numpy_helper.to_array(weight)
+        w = w.T.copy() if attrs.get("transB", 0) else w
+        w_name = f"{node.input[1]}_matmul_{index}"
+        model.graph.initializer.append(numpy_helper.from_array(w, w_name))
+        name = node.name or f"gemm_{index}"
+        has_bias = len(node.input) > 2 and node.input[2]
+        product = f"{node.output[0]}_product" if has_bias else node.output[0]
+        nodes.append(onnx.helper.make_node("MatMul", [node.input[0], w_name], [product], name=f"{name}_matmul"))
+        if has_bias:
+            nodes.append(onnx.helper.make_node("Add", [product, node.input[2]], [node.output[0]], name=f"{name}_bias"))
+    del model.graph.node[:]
+    model.graph.node.extend(nodes)
 
 
 def quantize_int8(model_bytes: bytes, min_weight_elements: int = MIN_WEIGHT_ELEMENTS) -> bytes:
@@ -47,13 +76,15 @@ def quantize_int8(model_bytes: bytes, min_weight_elements: int = MIN_WEIGHT_ELEM
 
     model = onnx.load_from_string(model_bytes)
     metadata = {p.key: p.value for p in model.metadata_props}
+    _gemms_as_matmuls(model, min_weight_elements)
     nodes = _large_products(model, min_weight_elements)
     with tempfile.TemporaryDirectory(prefix="vitfly-int8-") as tmp:
         out = Path(tmp) / "int8.onnx"
         if nodes:
             quantize_dynamic(model, out, op_types_to_quantize=["MatMul", "Gemm"], nodes_to_quantize=nodes,
-                             weight_type=QuantType.QInt8, per_channel=False, reduce_range=False)  # fmt: skip
+                             weight_type=QuantType.QInt8, per_channel=PER_CHANNEL, reduce_range=False)  # fmt: skip
             model = onnx.load(out)
+    onnx.checker.check_model(model)
     metadata["vitfly.precision"] = "int8"
     del model.metadata_props[:]
     for key, value in metadata.items():

@@ -21,15 +21,14 @@ import torch
 from torch import nn
 
 from vitfly.errors import VitflyError
+from vitfly.eval.config import BACKENDS  # "onnxruntime-int8": large products in int8 (vitfly.deploy.quantize)
 from vitfly.zoo import create_model
-
-# "onnxruntime-int8": the ONNX Runtime graph with its large products in int8 (vitfly.deploy.quantize)
-BACKENDS = ("eager", "onnxruntime", "onnxruntime-int8")
 
 
 def backend_precision(backend: str) -> str:
     """The ONNX export precision of an ONNX Runtime back end ("fp32" or "int8")."""
     return "int8" if backend.endswith("-int8") else "fp32"
+
 
 # Paper, Table I: (CPU ms, GPU ms); ResNet-18 has no entry
 PAPER_LATENCY_MS: dict[str, tuple[float, float]] = {
@@ -137,6 +136,8 @@ def onnxruntime_step(
     from vitfly.deploy.onnx import CHECK_ATOL, OnnxPolicyRunner, export_onnx_bytes
 
     providers = ["CPUExecutionProvider"]
+    if device.type == "cuda" and precision == "int8":
+        raise VitflyError("--backend onnxruntime-int8 runs on the CPU; use --device cpu")
     if device.type == "cuda":
         if "CUDAExecutionProvider" not in ort.get_available_providers():
             raise VitflyError("--backend onnxruntime --device cuda needs onnxruntime-gpu (CUDAExecutionProvider)")
