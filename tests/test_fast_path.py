@@ -122,3 +122,15 @@ def test_fast_paths_fly_the_eager_commands(flights, name):
         agreement = compare_commands(reference, replay_commands(fast, flights))
         assert agreement.ticks == 150
         assert agreement.within(COMMAND_TOLERANCE_MPS[backend]), (backend, agreement)
+
+
+def test_int8_latency_backend_checks_then_times(tmp_path, capsys):
+    from vitfly.cli import main
+    from vitfly.eval.latency import benchmark_model
+
+    result = benchmark_model("convnet", backend="onnxruntime-int8", iters=5, warmup=1)
+    assert result.backend == "onnxruntime-int8" and 0 < result.max_abs_diff < 0.05 and result.median_ms > 0
+    out = tmp_path / "convnet_int8.onnx"
+    assert main(["export", "convnet", "--out", str(out), "--batch-size", "1", "--precision", "int8"]) == 0
+    assert "int8" in capsys.readouterr().out
+    assert OnnxPolicyRunner(out).precision == "int8"

@@ -56,9 +56,10 @@ class PolicySource:
 
             precision = "int8" if self.backend == "onnxruntime-int8" else "fp32"
             providers = ["CUDAExecutionProvider"] if self.device.startswith("cuda") else None
-            # exported on the fly, checked against eager
+            # exported on the fly, checked against eager; ONNX Runtime takes host arrays whatever its provider
             step_fn = OnnxPolicyRunner(net, threads=self.threads, providers=providers, precision=precision)
-        return LearnedPolicy(net, device=self.device, step_fn=step_fn)
+            return LearnedPolicy(net, device="cpu", step_fn=step_fn)
+        return LearnedPolicy(net, device=self.device)
 
 
 def check_device(device: str, backend: str = "eager") -> None:
