@@ -1,17 +1,22 @@
 """int8 versions of exported policies for ONNX Runtime on CPUs with int8 dot-product units (AVX512-VNNI).
 
 ``quantize_int8(model_bytes)`` applies ONNX Runtime's *dynamic* quantisation to the large matrix products
-only (``MatMul``/``Gemm`` whose weight has at least ``min_weight_elements`` entries): their weights are stored
-as int8 (one scale per tensor), and each call quantises the product's input to uint8 from its own range
-and runs the product with integer arithmetic. Convolutions, attention products on activations, norms and
-activations stay float32. At batch 1 these products are memory-bound (the ViT+LSTM's fused 4608 -> 512 input
-product alone is 9.4 MB of float32 weights; the LSTMs' several MB more), so int8 weights read a quarter of the
-bytes. Dynamic quantisation needs no calibration data, so it cannot be mis-calibrated for a scene.
+only (``MatMul``, and ``Gemm`` rewritten as ``MatMul`` + ``Add``, whose weight has at least
+``min_weight_elements`` entries): their weights are stored as int8 with one scale per output channel, and
+each call quantises the product's input to uint8 from its own range and multiplies in integer arithmetic.
+Convolutions, products of two activations, norms and activations stay float32. At batch 1 these products
+are memory-bound (the ViT+LSTM's fused 4608 -> 512 input product alone is 9.4 MB of float32 weights, the
+LSTMs' products several MB more), so int8 weights read a quarter of the bytes. Dynamic quantisation needs
+no calibration data, so it cannot be mis-calibrated for a scene. ``FLOAT32_MODELS`` lists architectures
+whose int8 commands strayed beyond the tolerance over recorded flights; they keep float32 products.
 
-What was tried and dropped (``benchmarks/latency.py``): static (calibrated) int8 of the convolutions too, in
-both QDQ and QOperator form -- the ViT's grouped 3x3 convolutions and the LSTMs' products became slower
-than float32; dynamic int8 convolutions (ConvInteger) -- slower than ONNX Runtime's float32 NCHWc
-kernels. ONNX Runtime has no bf16 CPU kernels on x86.
+Tried and dropped (measured with per-call CPU time, one thread): static (calibrated) int8, QDQ and
+QOperator -- the ViT's grouped 3x3 convolutions and the LSTMs' products became slower than float32 (the LSTM
+networks about 5x), and the ViT's 1x1 convolutions alone gained at most 8 % with output errors as large as
+the dynamic products'; dynamic int8 convolutions (ConvInteger) -- slower than the float32 NCHWc kernels;
+weight-only ``MatMulNBits`` (8 and 4 bit, block 32 / 128) -- no faster than dynamic int8 and no more
+accurate; bf16 -- ONNX Runtime has no bf16 CPU kernels on x86, and eager PyTorch in bf16 (autocast or bf16
+weights) is no faster than float32 eager at batch 1.
 
 The quantised graph computes a different function; ``vitfly.eval.agreement`` measures how far its
 commands are from the float32 network's over recorded flights.
@@ -26,13 +31,18 @@ import onnx
 from onnx import numpy_helper
 
 PRECISIONS = ("fp32", "int8")
+# architectures whose products stay float32 in the int8 path, and why (benchmarks/fast_path_agreement.py)
+FLOAT32_MODELS = {
+    "vit": "its one large product (the decoder folded into the head, 4608 -> 256) in int8 moved the commands by "
+    "up to 0.2 m/s (2.3 deg) over recorded flights, above the 0.15 m/s tolerance",
+}
 # smaller products gain nothing from int8 at batch 1: the per-call input quantisation costs more than it saves
 MIN_WEIGHT_ELEMENTS = 16_384
 PER_CHANNEL = True
 
 
 def _large_products(model: onnx.ModelProto, min_weight_elements: int) -> list[str]:
-    """Names of the MatMul nodes whose second input is an initializer of at least ``min_weight_elements``."""
+    """Names of the MatMul nodes whose second input is an initializer with at least ``min_weight_elements``."""
     sizes = {init.name: numpy_helper.to_array(init).size for init in model.graph.initializer}
     return [
         node.name
@@ -70,14 +80,16 @@ def _gemms_as_matmuls(model: onnx.ModelProto, min_weight_elements: int) -> None:
 
 
 def quantize_int8(model_bytes: bytes, min_weight_elements: int = MIN_WEIGHT_ELEMENTS) -> bytes:
-    """The int8 (dynamic, weight-only-stored) version of an exported vitfly policy; metadata kept, plus
-    ``vitfly.precision = int8``."""
+    """The int8 version of an exported vitfly policy (its large products; none for ``FLOAT32_MODELS``);
+    metadata kept, plus ``vitfly.precision = int8`` and ``vitfly.int8_products`` (how many were quantised)."""
     from onnxruntime.quantization import QuantType, quantize_dynamic
 
     model = onnx.load_from_string(model_bytes)
     metadata = {p.key: p.value for p in model.metadata_props}
-    _gemms_as_matmuls(model, min_weight_elements)
-    nodes = _large_products(model, min_weight_elements)
+    nodes = []
+    if metadata.get("vitfly.model") not in FLOAT32_MODELS:
+        _gemms_as_matmuls(model, min_weight_elements)
+        nodes = _large_products(model, min_weight_elements)
     with tempfile.TemporaryDirectory(prefix="vitfly-int8-") as tmp:
         out = Path(tmp) / "int8.onnx"
         if nodes:
@@ -86,6 +98,7 @@ def quantize_int8(model_bytes: bytes, min_weight_elements: int = MIN_WEIGHT_ELEM
             model = onnx.load(out)
     onnx.checker.check_model(model)
     metadata["vitfly.precision"] = "int8"
+    metadata["vitfly.int8_products"] = str(len(nodes))
     del model.metadata_props[:]
     for key, value in metadata.items():
         entry = model.metadata_props.add()
