@@ -142,3 +142,16 @@ def test_benchmark_script_original_column_only_with_a_checkout(stand_in, tmp_pat
     assert "x original" not in capsys.readouterr().out
     assert {r["backend"] for r in json.loads(out.read_text())["summary"]} == {"eager"}
     assert script.main([*argv, "--original-repo", str(tmp_path / "nowhere")]) == 2
+
+
+def test_cpu_clock_leaves_out_waiting():
+    import time
+
+    from vitfly.eval.latency import time_calls
+
+    # a call that sleeps 20 ms waits without using the CPU: the wall clock sees the wait, the CPU clock does not
+    wall = time_calls(lambda: time.sleep(0.02), iters=3, warmup=0)
+    cpu = time_calls(lambda: time.sleep(0.02), iters=3, warmup=0, clock="cpu")
+    assert (wall >= 20.0).all() and (cpu < 10.0).all()
+    with pytest.raises(VitflyError, match="--clock must be one of wall, cpu"):
+        time_calls(lambda: None, iters=1, warmup=0, clock="tsc")
