@@ -5,6 +5,7 @@ import pytest
 import torch
 
 from vitfly.eval.learned_policy import LearnedPolicy, deploy_command
+from vitfly.sim.expert import takeoff_ramp
 from vitfly.zoo import create_model
 
 
@@ -25,6 +26,7 @@ def _obs(rng, n, active=None):
         "depth": rng.uniform(0, 1, size=(n, 60, 90)).astype(np.float32),
         "desired_speed": rng.uniform(3, 7, size=n),
         "quat": q / np.linalg.norm(q, axis=1, keepdims=True),
+        "position": np.tile([10.0, 0.0, 3.5], (n, 1)),  # past the take-off ramp
         "active": np.ones(n, bool) if active is None else np.asarray(active),
     }
 
@@ -93,3 +95,59 @@ def test_onnxruntime_step_gives_the_eager_commands():
     for obs in ticks:
         a, b = eager.raw_output(obs), onnx.raw_output(obs)
         assert b == pytest.approx(a, rel=1e-3, abs=1e-3)
+
+
+# Take-off ramp as the original `compute_command_vision_based` applies it after clip/normalise/scale:
+# while x < 2 m, vx = max(1, x / 2 * desired speed). Expected commands worked out by hand per x in RAMP_X.
+RAMP_X = (0.0, 0.5, 1.9, 2.1)
+RAMP_CASES = [
+    # raw network output, desired speed m/s, expected command at x = 0, 0.5, 1.9, 2.1 m
+    ((0.5, 0.0, 0.0), 5.0, [(1.0, 0, 0), (1.25, 0, 0), (4.75, 0, 0), (5.0, 0, 0)]),
+    # x clipped to 1: (1, 4, 0) / sqrt(17) * 7 = (1.69775, 6.79100, 0); the ramp replaces vx only
+    ((3.0, 4.0, 0.0), 7.0, [(1.0, 6.79100, 0), (1.75, 6.79100, 0), (6.65, 6.79100, 0), (1.69775, 6.79100, 0)]),
+    # unit already: (1.8, 0, -2.4) at 3 m/s; at x = 0.5 the ramp's 0.75 m/s is raised to the 1 m/s floor
+    ((0.6, 0.0, -0.8), 3.0, [(1.0, 0, -2.4), (1.0, 0, -2.4), (2.85, 0, -2.4), (1.8, 0, -2.4)]),
+    # backwards (x clipped to -1): the ramp still commands forward flight while x < 2 m
+    ((-2.0, 0.0, 0.0), 4.0, [(1.0, 0, 0), (1.0, 0, 0), (3.8, 0, 0), (-4.0, 0, 0)]),
+]
+
+
+def test_takeoff_ramp_by_hand():
+    # max(1, x / 2 * speed) below 2 m, the given vx from 2 m on
+    vx = takeoff_ramp(np.full(5, 6.0), np.array([0.0, 0.2, 1.0, 2.0, 3.0]), np.full(5, 6.0))
+    assert vx == pytest.approx([1.0, 1.0, 3.0, 6.0, 6.0])
+
+
+def _constant_convnet(raw):
+    """A real ConvNet whose last layer has zero weights and bias ``raw``: it outputs ``raw`` for any input."""
+    net = create_model("convnet").eval()
+    with torch.no_grad():
+        net.fc3.weight.zero_()
+        net.fc3.bias.copy_(torch.tensor(raw))
+    return net
+
+
+@pytest.mark.parametrize(("raw", "speed", "expected"), RAMP_CASES)
+def test_commands_with_the_takeoff_ramp_eager_and_onnxruntime(raw, speed, expected):
+    from vitfly.deploy.onnx import OnnxPolicyRunner
+
+    net = _constant_convnet(raw)
+    n = len(RAMP_X)
+    obs = {**_obs(np.random.default_rng(3), n), "desired_speed": np.full(n, speed),
+           "position": np.array([[x, 0.0, 3.5] for x in RAMP_X])}
+    for policy in (LearnedPolicy(net), LearnedPolicy(net, step_fn=OnnxPolicyRunner(net))):
+        policy.reset(n)
+        assert policy(obs) == pytest.approx(np.array(expected, dtype=np.float64), abs=1e-5)
+    # vitfly's variant without the ramp: the full-speed command everywhere
+    policy = LearnedPolicy(net, takeoff_ramp=False)
+    policy.reset(n)
+    assert policy(obs) == pytest.approx(np.tile(expected[-1], (n, 1)), abs=1e-5)
+
+
+def test_ramp_needs_the_position():
+    policy = LearnedPolicy(create_model("convnet"))
+    policy.reset(1)
+    obs = _obs(np.random.default_rng(4), 1)
+    del obs["position"]
+    with pytest.raises(ValueError, match="position"):
+        policy(obs)

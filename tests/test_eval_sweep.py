@@ -5,6 +5,7 @@ import json
 import os
 from pathlib import Path
 
+import numpy as np
 import pytest
 import torch
 
@@ -106,7 +107,9 @@ def test_expert_and_learned_policy_share_scenes_and_report(tmp_path, capsys):
     save_checkpoint(create_model("convnet"), "convnet", True, ckpt)
     out = tmp_path / "eval"
     assert evaluate(out, "--policy", "expert", "--speeds", "4", "--trials", "2") == 0
-    assert evaluate(out, "--policy", str(ckpt), "--speeds", "4", "--trials", "2", "--threads", "1") == 0
+    # 3 s: long enough to leave the take-off ramp (x < 2 m) behind
+    args = ["--speeds", "4", "--trials", "2", "--threads", "1", "--timeout", "3"]
+    assert evaluate(out, "--policy", str(ckpt), *args) == 0
     table = capsys.readouterr().out
     assert "tiny_convnet" in table and "expert" in table
     recs = records.read_sweep(out)
@@ -116,9 +119,14 @@ def test_expert_and_learned_policy_share_scenes_and_report(tmp_path, capsys):
     learned = [r for r in recs if r.policy == "tiny_convnet"]
     assert all(r.metrics["processing_ms"] > 0 for r in learned)
     assert all(r.extra["backend"] == "eager" for r in learned)
-    # commands are the paper's deployment: norm = desired speed
-    cmd = learned[0].path_arrays()["command"]
-    assert (cmd**2).sum(axis=1) ** 0.5 == pytest.approx(4.0, abs=1e-3)
+    # commands are the paper's deployment: norm = desired speed once past the take-off ramp (x >= 2 m), and
+    # vx = max(1, x / 2 * 4 m/s) on it
+    path = learned[0].path_arrays()
+    cmd, x = path["command"], path["position"][:, 0]
+    past = x >= 2.0
+    assert past.any() and (~past).any()
+    assert (cmd[past] ** 2).sum(axis=1) ** 0.5 == pytest.approx(4.0, abs=1e-3)
+    assert cmd[~past, 0] == pytest.approx(np.maximum(1.0, x[~past] / 2.0 * 4.0), abs=1e-3)
 
 
 def test_bad_policy_is_one_line_and_no_output(tmp_path, capsys):
@@ -264,3 +272,22 @@ def test_killed_sweep_resumes(tmp_path, capsys):
     assert f"{12 - done} trials flown, {done} already done" in capsys.readouterr().out
     recs = records.read_sweep(out)
     assert sorted(r.trial for r in recs) == list(range(12))
+
+
+def test_int8_backend_flies_and_cuda_absent_is_one_line(tmp_path, capsys):
+    from vitfly.zoo import create_model, save_checkpoint
+
+    torch.manual_seed(0)
+    ckpt = tmp_path / "tiny_convnet.ckpt"
+    save_checkpoint(create_model("convnet"), "convnet", True, ckpt)
+    out = tmp_path / "int8"
+    assert evaluate(out, "--policy", str(ckpt), "--speeds", "4", "--trials", "1", "--backend", "onnxruntime-int8") == 0
+    (rec,) = records.read_sweep(out)
+    assert rec.extra["backend"] == "onnxruntime-int8" and len(rec.path_arrays()["command"]) > 10
+    capsys.readouterr()
+    if torch.cuda.is_available():
+        pytest.skip("CUDA is present: the missing-CUDA error cannot be shown here")
+    assert evaluate(tmp_path / "gpu", "--policy", str(ckpt), "--trials", "1", "--device", "cuda") == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err == ["vitfly: error: --device cuda: CUDA is not available on this machine (use --device cpu)"]
+    assert not (tmp_path / "gpu").exists()

@@ -8,6 +8,7 @@ import os
 
 from vitfly.atomic import write_text
 from vitfly.errors import VitflyError
+from vitfly.eval.config import BACKENDS
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -21,7 +22,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--threads", type=int, default=1, help="CPU threads (torch / ONNX Runtime intra-op)")
     parser.add_argument("--iters", type=int, default=1000, help="timed calls per model")
     parser.add_argument("--warmup", type=int, default=100, help="untimed calls before timing")
-    parser.add_argument("--backend", choices=("eager", "onnxruntime"), default="eager", help="inference back end")
+    parser.add_argument("--backend", choices=BACKENDS, default="eager",
+                        help="inference back end (onnxruntime-int8: ONNX Runtime with int8 large products)")
     parser.add_argument("--json", default=None, metavar="PATH", help="also write the results as a JSON list")
 
 

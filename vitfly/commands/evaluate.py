@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import argparse
 
-from vitfly.eval.config import ENVS, load_sweep_config
+from vitfly.eval.config import BACKENDS, ENVS, load_sweep_config
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -30,9 +30,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--num-envs", type=int, help="scenes stepped in lockstep per batched policy call")
     parser.add_argument("--workers", type=int, help="worker processes")
     parser.add_argument("--shard", help="i/n: fly only shard i (0-based) of n; shards' outputs merge")
-    parser.add_argument("--device", help="torch device for learned policies (cpu, cuda)")
+    parser.add_argument("--device", help="device of learned policies' batched network: cpu or cuda[:N] "
+                                         "(the simulator steps on CPU processes either way)")
     parser.add_argument("--threads", type=int, help="torch threads per worker")
-    parser.add_argument("--backend", choices=("eager", "onnxruntime"), help="inference back end (learned policies)")
+    parser.add_argument("--backend", choices=BACKENDS,
+                        help="inference back end of learned policies (onnxruntime-int8: int8 large products)")
     parser.add_argument("--timeout", type=float, dest="timeout_s", help="trial timeout, s (default: scales w/ speed)")
     parser.add_argument("--camera", nargs="+", metavar="FIELD=VALUE", type=_camera_setting,
                         help="camera settings (e.g. vertical_fov_deg=70, or preset=camera_config_yaml); "

@@ -20,6 +20,7 @@ from torch import nn
 
 from vitfly.atomic import write_bytes
 from vitfly.deploy.optimize import inference_copy
+from vitfly.deploy.quantize import PRECISIONS, quantize_int8
 from vitfly.errors import VitflyError
 from vitfly.zoo.base import IMAGE_HEIGHT, IMAGE_WIDTH
 
@@ -28,6 +29,9 @@ STATE_INPUTS = ("h0", "c0")
 OUTPUTS = ("velocity",)
 STATE_OUTPUTS = ("hn", "cn")
 EXPORT_BATCH = 2  # example batch for tracing; 1 would be specialised away by torch.export
+# largest output difference to eager accepted by the check before use, relative to max(1, output scale):
+# float32 graphs differ by rounding only; int8 products by their quantisation (commands: vitfly.eval.agreement)
+CHECK_ATOL = {"fp32": 1e-4, "int8": 5e-2}
 
 
 class _FlatSignature(nn.Module):
@@ -66,14 +70,19 @@ def export_onnx_bytes(
     optimize: bool = True,
     opset: int | None = None,
     batch_size: int | None = None,
+    precision: str = "fp32",
 ) -> bytes:
     """The ONNX model of ``net`` (a zoo network) as bytes; see the module docstring for the signature.
 
     ``batch_size`` None gives a dynamic batch axis; an int fixes it (a leaner graph: batch-1 deployment).
+    ``precision`` "int8" quantises the large matrix products (``vitfly.deploy.quantize``) and, with
+    ``optimize``, takes the tanh approximation of GELU (``inference_copy``).
     """
+    if precision not in PRECISIONS:
+        raise VitflyError(f"precision must be one of {', '.join(PRECISIONS)}, got {precision!r}")
     net = net.eval()
     state_shape = _state_shape(net)
-    graph_net = inference_copy(net) if optimize else net
+    graph_net = inference_copy(net, approximate_gelu=precision == "int8") if optimize else net
     example_batch = EXPORT_BATCH if batch_size is None else batch_size
     args = example_inputs(net, example_batch)
     dynamic: dict[str, dict[int, object]] | None = None
@@ -112,12 +121,14 @@ def export_onnx_bytes(
         "vitfly.params": str(sum(p.numel() for p in net.parameters())),
         "vitfly.optimized": str(optimize),
         "vitfly.batch_size": str(batch_size or 0),
+        "vitfly.precision": "fp32",
     }
     del model.metadata_props[:]
     for key, value in meta.items():
         entry = model.metadata_props.add()
         entry.key, entry.value = key, value
-    return model.SerializeToString()
+    data = model.SerializeToString()
+    return quantize_int8(data) if precision == "int8" else data
 
 
 def export_onnx(
@@ -129,17 +140,19 @@ def export_onnx(
     opset: int | None = None,
     batch_size: int | None = None,
     check: bool = True,
-    atol: float = 1e-4,
+    atol: float | None = None,
+    precision: str = "fp32",
 ) -> float | None:
     """Write ``net`` as ONNX to ``path`` atomically; with ``check``, first verify it against eager.
 
     Returns the largest output difference found by the check (None without check). Raises VitflyError
-    and writes nothing if ONNX Runtime's outputs differ from eager by more than ``atol`` (relative to the
-    output magnitude when it exceeds 1).
+    and writes nothing if ONNX Runtime's outputs differ from eager by more than ``atol`` (default
+    ``CHECK_ATOL[precision]``; relative to the output magnitude when it exceeds 1).
     """
-    data = export_onnx_bytes(net, name=name, optimize=optimize, opset=opset, batch_size=batch_size)
+    data = export_onnx_bytes(net, name=name, optimize=optimize, opset=opset, batch_size=batch_size, precision=precision)
     diff = None
     if check:
+        atol = CHECK_ATOL[precision] if atol is None else atol
         diff = OnnxPolicyRunner(data).check_against(net, atol=atol, batch_size=batch_size or 2)
     write_bytes(path, data)
     return diff
@@ -169,7 +182,8 @@ class OnnxPolicyRunner:
     ``runner(depth[B, T, 1, 60, 90], desired_speed[B, T, 1], quat[B, T, 4], hidden=None)
     -> (velocity[B, T, 3], hidden)``; numpy in gives numpy out, torch in gives torch out. T > 1 runs
     the ticks one after another, carrying the recurrent state. ``path_or_net`` is an .onnx file, ONNX
-    bytes, or a zoo network (exported on the fly, then checked against eager).
+    bytes, or a zoo network (exported on the fly in ``precision``, then checked against eager within
+    ``CHECK_ATOL[precision]``).
     """
 
     def __init__(
@@ -179,11 +193,12 @@ class OnnxPolicyRunner:
         *,
         providers: list[str] | None = None,
         optimize: bool = True,
+        precision: str = "fp32",
     ) -> None:
         import onnxruntime as ort
 
         if isinstance(path_or_net, nn.Module):
-            model = export_onnx_bytes(path_or_net, optimize=optimize)
+            model = export_onnx_bytes(path_or_net, optimize=optimize, precision=precision)
             source = type(path_or_net).__name__
         elif isinstance(path_or_net, bytes):
             model, source = path_or_net, "<onnx bytes>"
@@ -209,9 +224,10 @@ class OnnxPolicyRunner:
         self.is_recurrent = meta["vitfly.recurrent"] == "True"
         self.state_shape = (int(meta["vitfly.state_layers"]), int(meta["vitfly.state_size"]))
         self.params = int(meta.get("vitfly.params", 0))
+        self.precision = meta.get("vitfly.precision", "fp32")
         self._outputs = list(OUTPUTS) + (list(STATE_OUTPUTS) if self.is_recurrent else [])
         if isinstance(path_or_net, nn.Module):
-            self.check_against(path_or_net)
+            self.check_against(path_or_net, atol=CHECK_ATOL.get(self.precision, CHECK_ATOL["fp32"]))
 
     def initial_hidden(self, batch_size: int) -> tuple[np.ndarray, np.ndarray]:
         """Zero LSTM state (h, c), each (layers, B, hidden) float32."""

@@ -14,7 +14,8 @@ import yaml
 from vitfly.errors import VitflyError
 
 ENVS = ("spheres", "trees", "window")
-BACKENDS = ("eager", "onnxruntime")
+# inference back ends of learned policies: eager PyTorch, ONNX Runtime float32, ONNX Runtime with int8 products
+BACKENDS = ("eager", "onnxruntime", "onnxruntime-int8")
 
 
 @dataclass
@@ -34,9 +35,9 @@ class SweepConfig:
     num_envs: int = 8  # scenes stepped in lockstep (one batched policy call per tick)
     workers: int = 1  # processes
     shard: str | None = None  # "i/n": this process runs shard i (0-based) of n
-    device: str = "cpu"
+    device: str = "cpu"  # learned policies' network: "cpu" or "cuda[:N]" (the simulator always steps on CPU)
     threads: int = 1  # torch threads per worker
-    backend: str = "eager"  # learned policies: eager PyTorch or ONNX Runtime
+    backend: str = "eager"  # learned policies: one of BACKENDS
     timeout_s: float | None = None  # per trial; default scales with speed (sim's default)
     # the sensor flown with (vitfly.eval.sensor): None = the checkpoint's training sensor, else vitfly's defaults
     camera: dict | None = None  # CameraConfig fields, e.g. {vertical_fov_deg: 70}, or {preset: camera_config_yaml}

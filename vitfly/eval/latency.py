@@ -3,8 +3,10 @@
 Batch 1, one control tick per call, recurrent state carried from call to call (as in flight), a warm-up,
 then ``iters`` individually timed calls (``time.perf_counter``; CUDA synchronised after every call);
 median and 90th percentile in milliseconds. Back ends: ``eager`` (the PyTorch module under
-``torch.inference_mode``) and ``onnxruntime`` (an ONNX export with a fixed batch of 1, checked against
-eager before anything is timed).
+``torch.inference_mode``), ``onnxruntime`` (an ONNX export with a fixed batch of 1, checked against
+eager before anything is timed) and ``onnxruntime-int8`` (the same with its large products in int8,
+``vitfly.deploy.quantize``). ``prepare_original`` times the original project's networks the same way,
+imported from a checkout (``vitfly.eval.original_networks``).
 """
 
 from __future__ import annotations
@@ -19,9 +21,14 @@ import torch
 from torch import nn
 
 from vitfly.errors import VitflyError
+from vitfly.eval.config import BACKENDS  # "onnxruntime-int8": large products in int8 (vitfly.deploy.quantize)
 from vitfly.zoo import create_model
 
-BACKENDS = ("eager", "onnxruntime")
+
+def backend_precision(backend: str) -> str:
+    """The ONNX export precision of an ONNX Runtime back end ("fp32" or "int8")."""
+    return "int8" if backend.endswith("-int8") else "fp32"
+
 
 # Paper, Table I: (CPU ms, GPU ms); ResNet-18 has no entry
 PAPER_LATENCY_MS: dict[str, tuple[float, float]] = {
@@ -64,10 +71,21 @@ class LatencyResult:
         return asdict(self)
 
 
+# "wall": elapsed time (the paper's measure); "cpu": CPU time of the calling thread, which leaves out the time
+# the thread waits for a core on a shared machine (one-thread runs only: other threads' work is not counted)
+CLOCKS: dict[str, Callable[[], float]] = {"wall": time.perf_counter, "cpu": time.thread_time}
+
+
 def time_calls(
-    step: Callable[[], object], iters: int, warmup: int, synchronize: Callable[[], None] | None = None
+    step: Callable[[], object],
+    iters: int,
+    warmup: int,
+    synchronize: Callable[[], None] | None = None,
+    clock: str = "wall",
 ) -> np.ndarray:
-    """Milliseconds of each of ``iters`` calls of ``step`` after ``warmup`` untimed ones."""
+    """Milliseconds of each of ``iters`` calls of ``step`` after ``warmup`` untimed ones, on ``CLOCKS[clock]``."""
+    if clock not in CLOCKS:
+        raise VitflyError(f"--clock must be one of {', '.join(CLOCKS)}, got {clock!r}")
     if iters < 1:
         raise VitflyError(f"--iters must be at least 1, got {iters}")
     if warmup < 0:
@@ -81,13 +99,13 @@ def time_calls(
     gc_was_enabled = gc.isenabled()
     gc.disable()  # a collection inside the loop would land in one sample
     try:
-        clock = time.perf_counter
+        now = CLOCKS[clock]
         for i in range(iters):
-            start = clock()
+            start = now()
             step()
             if synchronize is not None:
                 synchronize()
-            times[i] = clock() - start
+            times[i] = now() - start
     finally:
         if gc_was_enabled:
             gc.enable()
@@ -117,23 +135,27 @@ def eager_step(net: nn.Module, device: torch.device) -> Callable[[], object]:
 
 
 def onnxruntime_step(
-    net: nn.Module, device: torch.device, threads: int, atol: float = 1e-4
+    net: nn.Module, device: torch.device, threads: int, atol: float | None = None, precision: str = "fp32"
 ) -> tuple[Callable[[], object], float]:
     """A closure running one tick through ONNX Runtime (fixed batch 1) and the check's largest difference.
 
-    Raises VitflyError, timing nothing, if ONNX Runtime's outputs differ from eager by more than ``atol``.
+    Raises VitflyError, timing nothing, if ONNX Runtime's outputs differ from eager by more than ``atol``
+    (default: the export's ``CHECK_ATOL`` for ``precision``).
     """
     import onnxruntime as ort
 
-    from vitfly.deploy.onnx import OnnxPolicyRunner, export_onnx_bytes
+    from vitfly.deploy.onnx import CHECK_ATOL, OnnxPolicyRunner, export_onnx_bytes
 
     providers = ["CPUExecutionProvider"]
+    if device.type == "cuda" and precision == "int8":
+        raise VitflyError("--backend onnxruntime-int8 runs on the CPU; use --device cpu")
     if device.type == "cuda":
         if "CUDAExecutionProvider" not in ort.get_available_providers():
             raise VitflyError("--backend onnxruntime --device cuda needs onnxruntime-gpu (CUDAExecutionProvider)")
         providers = ["CUDAExecutionProvider"]
-    runner = OnnxPolicyRunner(export_onnx_bytes(net, batch_size=1), threads=threads, providers=providers)
-    diff = runner.check_against(net.cpu(), atol=atol, batch_size=1)
+    runner = OnnxPolicyRunner(export_onnx_bytes(net, batch_size=1, precision=precision), threads=threads,
+                              providers=providers)  # fmt: skip
+    diff = runner.check_against(net.cpu(), atol=CHECK_ATOL[precision] if atol is None else atol, batch_size=1)
     if device.type == "cuda":  # inputs and outputs go through host memory here
         depth, speed, quat = (x.numpy() for x in _inputs(torch.device("cpu")))
         state = {"hidden": None}
@@ -149,16 +171,25 @@ def onnxruntime_step(
     return bound, diff
 
 
-def benchmark_model(
-    name: str,
-    backend: str = "eager",
-    device: str = "cpu",
-    threads: int = 1,
-    iters: int = 1000,
-    warmup: int = 100,
-    net: nn.Module | None = None,
-) -> LatencyResult:
-    """Time one registered model (random weights unless ``net`` is given) on one back end and device."""
+@dataclass
+class PreparedStep:
+    """One model ready to time: ``step()`` runs one control tick (batch 1), carrying its recurrent state."""
+
+    model: str
+    backend: str
+    device: str
+    threads: int
+    params: int
+    step: Callable[[], object]
+    synchronize: Callable[[], None] | None = None
+    max_abs_diff: float | None = None  # fast back end vs eager, from the check before timing
+
+
+def prepare_step(
+    name: str, backend: str = "eager", device: str = "cpu", threads: int = 1, net: nn.Module | None = None
+) -> PreparedStep:
+    """Build (and, for ONNX Runtime back ends, export and check) one registered model (random weights unless
+    ``net`` is given) for timing."""
     if backend not in BACKENDS:
         raise VitflyError(f"--backend must be one of {', '.join(BACKENDS)}, got {backend!r}")
     if threads < 1:
@@ -177,18 +208,47 @@ def benchmark_model(
             net = net.to(dev)
             step = eager_step(net, dev)
         else:
-            step, diff = onnxruntime_step(net, dev, threads)
-        sync = torch.cuda.synchronize if (dev.type == "cuda" and backend == "eager") else None
-        times = time_calls(step, iters, warmup, sync)
+            step, diff = onnxruntime_step(net, dev, threads, precision=backend_precision(backend))
     finally:
         torch.set_num_threads(previous_threads)
-    paper = PAPER_LATENCY_MS.get(name)
+    sync = torch.cuda.synchronize if (dev.type == "cuda" and backend == "eager") else None
+    return PreparedStep(name, backend, dev.type, threads, params, step, sync, diff)
+
+
+def prepare_original(module, name: str, threads: int = 1) -> PreparedStep:
+    """The original project's network for model ``name`` (``original_networks.load_original_models``), called
+    as the original deployment calls it (``original_networks.original_step``) on the same frame; CPU only.
+    Back end "original"."""
+    from vitfly.eval.original_networks import original_network, original_step
+
+    if threads < 1:
+        raise VitflyError(f"--threads must be at least 1, got {threads}")
+    net = original_network(module, name)
+    depth, speed, quat = _inputs(torch.device("cpu"))
+    step = original_step(net, name, depth[0, 0, 0], float(speed), quat[0, 0])
+    return PreparedStep(name, "original", "cpu", threads, sum(p.numel() for p in net.parameters()), step)
+
+
+def time_step(prepared: PreparedStep, iters: int = 1000, warmup: int = 100, clock: str = "wall") -> LatencyResult:
+    """Time a prepared model: ``warmup`` untimed ticks, then ``iters`` timed ones, torch on ``threads``.
+
+    ``clock`` "cpu" (the thread's CPU time) needs one thread on the CPU: VitflyError otherwise.
+    """
+    if clock == "cpu" and (prepared.threads != 1 or prepared.device != "cpu"):
+        raise VitflyError("--clock cpu measures one thread on the CPU: use --threads 1 and the CPU")
+    previous_threads = torch.get_num_threads()
+    torch.set_num_threads(prepared.threads)
+    try:
+        times = time_calls(prepared.step, iters, warmup, prepared.synchronize, clock)
+    finally:
+        torch.set_num_threads(previous_threads)
+    paper = PAPER_LATENCY_MS.get(prepared.model)
     return LatencyResult(
-        model=name,
-        params=params,
-        backend=backend,
-        device=dev.type,
-        threads=threads,
+        model=prepared.model,
+        params=prepared.params,
+        backend=prepared.backend,
+        device=prepared.device,
+        threads=prepared.threads,
         batch_size=1,
         iters=iters,
         warmup=warmup,
@@ -196,10 +256,29 @@ def benchmark_model(
         p90_ms=float(np.percentile(times, 90)),
         mean_ms=float(times.mean()),
         min_ms=float(times.min()),
-        max_abs_diff=diff,
+        max_abs_diff=prepared.max_abs_diff,
         paper_cpu_ms=paper[0] if paper else None,
         paper_gpu_ms=paper[1] if paper else None,
     )
+
+
+def benchmark_model(
+    name: str,
+    backend: str = "eager",
+    device: str = "cpu",
+    threads: int = 1,
+    iters: int = 1000,
+    warmup: int = 100,
+    net: nn.Module | None = None,
+) -> LatencyResult:
+    """Time one registered model (random weights unless ``net`` is given) on one back end and device."""
+    return time_step(prepare_step(name, backend, device, threads, net), iters, warmup)
+
+
+def benchmark_original(module, name: str, threads: int = 1, iters: int = 1000, warmup: int = 100) -> LatencyResult:
+    """Time the original project's network for model ``name``; same frame, settings and clock as
+    ``benchmark_model``."""
+    return time_step(prepare_original(module, name, threads), iters, warmup)
 
 
 def latency_table(results: Iterable[LatencyResult], title: str = "Inference latency (batch 1)"):

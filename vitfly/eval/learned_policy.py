@@ -1,11 +1,11 @@
 """A zoo network flown as a simulator policy: one batched forward pass per control tick.
 
 The simulator's rollout engine steps N scenes in lockstep and calls ``policy(obs)`` once per tick
-(``obs``: depth (N, 60, 90) in [0, 1], desired_speed (N,) m/s, quat (N, 4) (w, x, y, z), active
-(N,) bool); the policy returns world-frame velocity commands (N, 3) in m/s. This adapter keeps one
-recurrent state per env, zeroed by ``reset`` at the start of each trial, runs the network only on
-the active envs, and turns the network output into a command as the paper deploys it
-(``deploy_command``).
+(``obs``: depth (N, 60, 90) in [0, 1], desired_speed (N,) m/s, quat (N, 4) (w, x, y, z), position
+(N, 3) m world frame, active (N,) bool); the policy returns world-frame velocity commands (N, 3) in
+m/s. This adapter keeps one recurrent state per env, zeroed by ``reset`` at the start of each trial,
+runs the network only on the active envs, and turns the network output into a command as the paper
+deploys it (``deploy_command``, take-off ramp included).
 """
 
 from __future__ import annotations
@@ -16,21 +16,32 @@ import numpy as np
 import torch
 from torch import nn
 
+from vitfly.sim.expert import ExpertConfig, takeoff_ramp
+
 # (depth (B,1,1,60,90), desired_speed (B,1,1), quat (B,1,4), hidden | None) -> (out (B,1,3), hidden | None)
 StepFn = Callable[..., tuple]
 
 
-def deploy_command(raw: np.ndarray, desired_speed_mps: np.ndarray) -> np.ndarray:
+def deploy_command(
+    raw: np.ndarray, desired_speed_mps: np.ndarray, x_m: np.ndarray | None = None, ramp: ExpertConfig | None = None
+) -> np.ndarray:
     """Network output (N, 3) (velocity / desired speed) -> world-frame command (N, 3) in m/s.
 
-    Paper deployment: clip the x part to [-1, 1], normalise to a unit vector, multiply by the
-    desired speed. A zero output (no direction at all) flies straight ahead.
+    Paper deployment (``compute_command_vision_based``): clip the x part to [-1, 1], normalise to a
+    unit vector, multiply by the desired speed, then, given the drones' world-frame x (N,) in m,
+    apply the expert's take-off ramp to the x command (``vitfly.sim.expert.takeoff_ramp``, constants
+    from ``ramp``, default ``ExpertConfig()``). ``x_m`` None skips the ramp. A zero output (no
+    direction at all) flies straight ahead.
     """
     v = np.array(raw, dtype=np.float64).reshape(-1, 3)
     v[:, 0] = np.clip(v[:, 0], -1.0, 1.0)
     norm = np.linalg.norm(v, axis=1, keepdims=True)
     unit = np.where(norm > 1e-9, v / np.maximum(norm, 1e-12), np.array([1.0, 0.0, 0.0]))
-    return unit * np.asarray(desired_speed_mps, dtype=np.float64).reshape(-1, 1)
+    speed = np.asarray(desired_speed_mps, dtype=np.float64).reshape(-1)
+    command = unit * speed[:, None]
+    if x_m is not None:
+        command[:, 0] = takeoff_ramp(command[:, 0], np.asarray(x_m, dtype=np.float64).reshape(-1), speed, ramp)
+    return command
 
 
 def _obs_field(obs, name: str):
@@ -46,12 +57,20 @@ class LearnedPolicy:
 
     ``step_fn`` replaces the eager network call (e.g. an ONNX Runtime session with the same
     inputs and outputs); by default the network runs under ``torch.no_grad`` on ``device`` (not
-    inference_mode: the per-env state is updated in place between calls).
+    inference_mode: the per-env state is updated in place between calls). ``takeoff_ramp`` False is
+    vitfly's variant without the paper's take-off ramp (full speed from the start).
     """
 
-    def __init__(self, net: nn.Module, device: str | torch.device = "cpu", step_fn: StepFn | None = None):
+    def __init__(
+        self,
+        net: nn.Module,
+        device: str | torch.device = "cpu",
+        step_fn: StepFn | None = None,
+        takeoff_ramp: bool = True,
+    ):
         self.net = net.eval().to(device)
         self.device = torch.device(device)
+        self.takeoff_ramp = bool(takeoff_ramp)
         self.is_recurrent = bool(getattr(net, "is_recurrent", False))
         self._step = step_fn or self._eager_step
         self._hidden = None
@@ -105,8 +124,13 @@ class LearnedPolicy:
         return out
 
     def __call__(self, obs) -> np.ndarray:
+        x_m = None
+        if self.takeoff_ramp:
+            if not _has(obs, "position"):
+                raise ValueError("observation has no 'position' (N, 3) m: the take-off ramp needs the drones' x")
+            x_m = np.asarray(_obs_field(obs, "position"), dtype=np.float64).reshape(-1, 3)[:, 0]
         raw = self.raw_output(obs)
-        return deploy_command(raw, np.asarray(_obs_field(obs, "desired_speed"), dtype=np.float64))
+        return deploy_command(raw, np.asarray(_obs_field(obs, "desired_speed"), dtype=np.float64), x_m)
 
 
 def _has(obs, name: str) -> bool:

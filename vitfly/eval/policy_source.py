@@ -19,8 +19,8 @@ BUILTIN = ("expert", "straight")
 class PolicySource:
     spec: str  # "expert", "straight", "pretrained:NAME" or a checkpoint path
     arch: str | None = None  # architecture of an original-project checkpoint
-    backend: str = "eager"  # "eager" or "onnxruntime" (learned policies)
-    device: str = "cpu"
+    backend: str = "eager"  # "eager", "onnxruntime" or "onnxruntime-int8" (learned policies)
+    device: str = "cpu"  # the learned policy's network: "cpu" or "cuda[:N]"
     threads: int = 1  # ONNX Runtime intra-op threads
 
     @property
@@ -45,10 +45,12 @@ class PolicySource:
             from vitfly.zoo.pretrained import manifest_entry, pretrained_name
 
             manifest_entry(pretrained_name(self.spec))  # the manifest lists it; the file is checked on loading
+            check_device(self.device, self.backend)
             return
         if not Path(self.spec).is_file():
             raise VitflyError(f"--policy {self.spec}: no such checkpoint file "
                               "(or use 'expert', 'straight' or 'pretrained:NAME')")
+        check_device(self.device, self.backend)
 
     def trained_sensor(self) -> dict | None:
         """The sensor a checkpoint was trained with ({depth_max_m, camera, control_hz}); None for the built-in
@@ -82,8 +84,37 @@ class PolicySource:
 
         net = self.load_network()
         step_fn = None
-        if self.backend == "onnxruntime":
+        if self.backend.startswith("onnxruntime"):
             from vitfly.deploy.onnx import OnnxPolicyRunner
 
-            step_fn = OnnxPolicyRunner(net, threads=self.threads)  # exported on the fly, checked against eager
-        return LearnedPolicy(net, device=self.device, step_fn=step_fn)
+            precision = "int8" if self.backend == "onnxruntime-int8" else "fp32"
+            providers = ["CUDAExecutionProvider"] if self.device.startswith("cuda") else None
+            # exported on the fly, checked against eager; ONNX Runtime takes host arrays whatever its provider
+            step_fn = OnnxPolicyRunner(net, threads=self.threads, providers=providers, precision=precision)
+            return LearnedPolicy(net, device="cpu", step_fn=step_fn)
+        return LearnedPolicy(net, device=self.device)
+
+
+def check_device(device: str, backend: str = "eager") -> None:
+    """One-line VitflyError unless ``device`` ("cpu", "cuda", "cuda:N") can run ``backend`` here."""
+    import torch
+
+    try:
+        dev = torch.device(device)
+    except (RuntimeError, ValueError):
+        raise VitflyError(f"--device {device}: expected cpu, cuda or cuda:N") from None
+    if dev.type not in ("cpu", "cuda"):
+        raise VitflyError(f"--device {device}: expected cpu, cuda or cuda:N")
+    if dev.type == "cpu":
+        return
+    if not torch.cuda.is_available():
+        raise VitflyError(f"--device {device}: CUDA is not available on this machine (use --device cpu)")
+    if dev.index is not None and dev.index >= torch.cuda.device_count():
+        raise VitflyError(f"--device {device}: this machine has {torch.cuda.device_count()} CUDA device(s)")
+    if backend == "onnxruntime-int8":
+        raise VitflyError(f"--backend {backend} runs on the CPU; with --device {device} use --backend eager")
+    if backend == "onnxruntime":
+        import onnxruntime as ort
+
+        if "CUDAExecutionProvider" not in ort.get_available_providers():
+            raise VitflyError(f"--backend onnxruntime --device {device} needs onnxruntime-gpu; or use --backend eager")

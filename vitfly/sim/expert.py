@@ -116,6 +116,19 @@ def waypoint_grid(config: ExpertConfig) -> tuple[np.ndarray, np.ndarray]:
     return wpts, manhattan
 
 
+def takeoff_ramp(vx_mps, x_m, desired_speed_mps, config: ExpertConfig | None = None) -> np.ndarray:
+    """The paper code's take-off ramp on the forward command (expert and learned policies alike).
+
+    While the drone is short of ``ramp_distance_m`` along world x, the x command is replaced by
+    ``max(ramp_min_speed_mps, x / ramp_distance_m * desired_speed)``; elsewhere it is left as given.
+    Elementwise over arrays of envs: vx_mps (m/s), x_m (world-frame x, m), desired_speed_mps (m/s).
+    """
+    cfg = config or ExpertConfig()
+    x = np.asarray(x_m, dtype=np.float64)
+    ramp = np.maximum(cfg.ramp_min_speed_mps, x / cfg.ramp_distance_m * np.asarray(desired_speed_mps, np.float64))
+    return np.where(x < cfg.ramp_distance_m, ramp, np.asarray(vx_mps, dtype=np.float64))
+
+
 @lru_cache(maxsize=8)
 def _unit_directions(config: ExpertConfig) -> np.ndarray:
     wpts, _ = waypoint_grid(config)
@@ -258,6 +271,5 @@ def expert_command(
         command = wpt / np.linalg.norm(wpt) * float(desired_speed)
     if pos[2] < cfg.min_altitude_m:
         command[2] = cfg.altitude_gain * (cfg.min_altitude_m - pos[2])
-    if pos[0] < cfg.ramp_distance_m:
-        command[0] = max(cfg.ramp_min_speed_mps, pos[0] / cfg.ramp_distance_m * float(desired_speed))
+    command[0] = takeoff_ramp(command[0], pos[0], float(desired_speed), cfg)
     return command
