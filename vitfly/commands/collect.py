@@ -6,6 +6,7 @@ import argparse
 
 from vitfly.datamodules.schema import DEPTH_STORAGE
 from vitfly.sim.collect import CollectConfig, collect, load_collect_config
+from vitfly.sim.physics import PHYSICS_CHOICES
 
 _DEFAULTS = CollectConfig()
 
@@ -48,11 +49,18 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="depth storage of a new file: none streams several times faster in training, gzip is ~2.8x smaller "
         f"(YAML, else {_DEFAULTS.depth_compression})",
     )
+    parser.add_argument(
+        "--physics",
+        choices=PHYSICS_CHOICES,
+        default=keep,
+        help="rigid-body physics back end, stored with the dataset: pybullet (the reference), native (numpy, same "
+        f"results to rounding) or auto, pybullet where installed (YAML, else {_DEFAULTS.physics})",
+    )
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
 
 
 def run(args: argparse.Namespace) -> int:
-    flags = ("trajectories", "speeds", "seed", "workers", "depth_compression")
+    flags = ("trajectories", "speeds", "seed", "workers", "depth_compression", "physics")
     overrides = {name: getattr(args, name, None) for name in flags}
     config = load_collect_config(getattr(args, "config", None), overrides)
     summary = collect(config, args.out, progress=not args.no_progress)

@@ -24,6 +24,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--device", help="torch device for learned policies (cpu, cuda)")
     parser.add_argument("--threads", type=int, help="torch threads per worker")
     parser.add_argument("--backend", choices=("eager", "onnxruntime"), help="inference back end (learned policies)")
+    parser.add_argument("--physics", choices=("auto", "pybullet", "native"),
+                        help="rigid-body physics back end, stated in every trial record (config default: auto, "
+                             "pybullet where installed, else native)")
     parser.add_argument("--timeout", type=float, dest="timeout_s", help="trial timeout, s (default: scales w/ speed)")
     parser.add_argument("--no-gif", action="store_true", help="skip the depth GIF with the command arrow")
     parser.add_argument("--no-plots", action="store_true", help="skip the plots")
@@ -40,7 +43,7 @@ def run(args: argparse.Namespace) -> int:
 
     overrides = {k: getattr(args, k) for k in ("policy", "arch", "name", "env", "preset", "speeds", "trials", "seed",
                                               "out", "num_envs", "workers", "shard", "device", "threads",
-                                              "backend", "timeout_s", "wandb_project")}
+                                              "backend", "physics", "timeout_s", "wandb_project")}
     overrides["gif"] = False if args.no_gif else None
     overrides["plots"] = False if args.no_plots else None
     cfg = load_sweep_config(args.config, overrides)

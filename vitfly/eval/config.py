@@ -36,6 +36,7 @@ class SweepConfig:
     device: str = "cpu"
     threads: int = 1  # torch threads per worker
     backend: str = "eager"  # learned policies: eager PyTorch or ONNX Runtime
+    physics: str = "auto"  # rigid-body back end: "pybullet", "native" or "auto" (made concrete by validate)
     timeout_s: float | None = None  # per trial; default scales with speed (sim's default)
     gif: bool = True  # re-fly one trial with depth frames and write a GIF with the command arrow
     plots: bool = True
@@ -53,6 +54,9 @@ class SweepConfig:
         if self.backend not in BACKENDS:
             raise VitflyError(f"{source}: field 'backend' is {self.backend!r}; expected one of {', '.join(BACKENDS)}")
         parse_shard(self.shard, source)
+        from vitfly.sim.physics import resolve_physics
+
+        self.physics = resolve_physics(self.physics, f"{source}: field 'physics'")
         return self
 
     @property
