@@ -8,10 +8,10 @@ of a quarter turn per step on the attitude update (188 rad/s at 240 Hz).
 
 Two kernels compute the same maths:
 
-- array kernel: all N drones in one array operation per term, the state held as a (22, N)
-  component-major array (rows: position 3, quaternion (w, x, y, z) 4, rotation row-major 9,
-  velocity 3, body rates 3), with the cascaded controller of :mod:`vitfly.sim.controller`
-  vectorised the same way (:meth:`NativeFleet.track`);
+- array kernel: all N drones in one array operation per term, the state held component-major
+  (rows: position 3, quaternion (w, x, y, z) 4, rotation row-major 9, velocity 3, body rates 3),
+  with the cascaded controller of :mod:`vitfly.sim.controller` vectorised the same way
+  (:meth:`NativeFleet.track`);
 - scalar kernel: Python floats, one drone at a time, for fleets of a few drones, where numpy's
   per-call overhead (~0.3 us a call, ~100 calls a step) would cost more than the arithmetic.
 
@@ -31,7 +31,7 @@ from vitfly.sim.controller import ControllerGains, make_velocity_controller
 from vitfly.sim.physics.base import Fleet
 from vitfly.sim.quadrotor import GRAVITY_MPS2, Airframe, DroneState
 
-SCALAR_MAX_DRONES = 7
+SCALAR_MAX_DRONES = 9
 
 # Bullet replaces sin(|w| dt / 2) / |w| by its Taylor series below this rate (rad/s)
 _TAYLOR_BELOW_RADPS = 1e-3
@@ -193,31 +193,26 @@ class _ArrayKernel:
     (``terms``, rows below): at ~0.3 us a numpy call, the number of calls is the cost.
 
     ``terms`` rows: 0 commanded collective thrust; 1-18 the products d_i[k] R[k, j] of the attitude
-    error; 19-21 body rates; 22-30 their products w_i w_j (gyroscopic term); 31-34 omega^2 of the rotors.
-    The motor lag is folded in: ``cmd`` holds ``motor_alpha`` times the clipped rotor speed commands.
+    error; 19-21 body rates; 22-30 their products w_i w_j (gyroscopic term, kept current with the
+    rates); 31-34 omega^2 of the rotors. The motor lag is folded in: ``cmd`` holds ``motor_alpha``
+    times the clipped rotor speed commands.
     """
 
     def __init__(self, airframe: Airframe, n: int, dt: float, motor_alpha: float):
         self.airframe, self.n, self.motor_alpha = airframe, n, motor_alpha
-        self.s = np.zeros((22, n))  # the state, component-major (see the module docstring)
+        self.s = np.zeros((19, n))  # position, quaternion, rotation, velocity (see the module docstring)
         self.rotor = np.zeros((4, n))  # rotor speeds (rad/s)
         self.cmd = np.zeros((4, n))  # motor_alpha * clipped rotor speed commands (rad/s)
         self.terms = np.zeros((35, n))
-        self.blocks = (self.s[0:3].T, self.s[3:7].T, self.s[7:16].T, self.s[16:19].T, self.s[19:22].T)
-        rates = self.s[19:22]
-        rates_a, rates_b, products = rates[:, None, :], rates[None, :, :], self.terms[22:31].reshape(3, 3, n)
-        mul = np.multiply
-
-        def gyro_products() -> None:  # w_i w_j at the start of the step
-            mul(rates_a, rates_b, products)
-
-        self.gyro_products = gyro_products
+        self.rates = self.terms[19:22]  # body rates (rad/s): the state's last block, kept among the terms
+        self.blocks = (self.s[0:3].T, self.s[3:7].T, self.s[7:16].T, self.s[16:19].T, self.rates.T)
         self.integrate = _make_integrator(self, dt)
         self._trackers: dict[ControllerGains, Callable[[np.ndarray], None]] = {}
 
     def reset(self, positions: np.ndarray) -> None:
         s = self.s
         s[:] = 0.0
+        self.terms[:] = 0.0  # body rates and their products
         s[0:3] = positions.T
         s[3] = 1.0  # quaternion (1, 0, 0, 0)
         s[[7, 11, 15]] = 1.0  # identity rotation
@@ -230,17 +225,15 @@ class _ArrayKernel:
         """One physics step from rotor speed commands (4, N) rad/s."""
         af = self.airframe
         np.multiply(np.clip(rotor_omega_cmd, af.omega_min_radps, af.omega_max_radps), self.motor_alpha, self.cmd)
-        self.gyro_products()
         self.integrate()
 
     def tracker(self, gains: ControllerGains) -> Callable[[np.ndarray], None]:
         """``track(velocity_cmd)``: controller and one physics step for world-frame commands (3, N) m/s."""
         track = self._trackers.get(gains)
         if track is None:
-            control, gyro_products, integrate = _make_controller(self, gains), self.gyro_products, self.integrate
+            control, integrate = _make_controller(self, gains), self.integrate
 
             def track(velocity_cmd: np.ndarray) -> None:
-                gyro_products()
                 control(velocity_cmd)
                 integrate()
 
@@ -251,33 +244,38 @@ class _ArrayKernel:
 def _make_integrator(kn: _ArrayKernel, dt: float) -> Callable[[], None]:
     """``integrate()``: one physics step from ``kn.cmd`` and the gyro products (see ``physics.base``)."""
     af, n, s = kn.airframe, kn.n, kn.s
-    pos, quat, rot, vel, rates = s[0:3], s[3:7], s[7:16], s[16:19], s[19:22]
+    pos, quat, rot, vel, rates = s[0:3], s[3:7], s[7:16], s[16:19], kn.rates
     body_z, quat_w = s[9:16:3], s[3]  # column 2 of R: body z in the world frame
     cmd, rotor, terms = kn.cmd, kn.rotor, kn.terms
-    omega_sq, step_terms = terms[31:35], terms[22:35]
-    # [dt T / m, dt J^-1 (tau - w x J w)] = step_map @ [w_i w_j, omega^2]
+    omega_sq, step_terms, products = terms[31:35], terms[22:35], terms[22:31]
+    rates_a, rates_b, products_3x3 = rates[:, None, :], rates[None, :, :], products.reshape(3, 3, n)
+    # [dt T / m (3 rows), dt J^-1 (tau - w x J w)] = step_map @ [w_i w_j, omega^2]
     jx, jy, jz = af.inertia_kgm2
     dt_inv_inertia = dt / np.array(af.inertia_kgm2)[:, None]
     thrust_k = af.allocation * af.thrust_coeff  # [T, tau] = thrust_k @ omega^2
     gyro_map = _coefficients((3, 9), [(0, 5, jz - jy), (1, 6, jx - jz), (2, 1, jy - jx)])  # w x J w from w_i w_j
-    step_map = np.zeros((4, 13))
-    step_map[0, 9:] = thrust_k[0] * dt / af.mass_kg
-    step_map[1:, :9] = -dt_inv_inertia * gyro_map
-    step_map[1:, 9:] = dt_inv_inertia * thrust_k[1:]
-    increments = np.zeros((4, n))
-    dv_thrust, dw = increments[0], increments[1:4]
-    t3, u3, t4 = np.zeros((3, n)), np.zeros((3, n)), np.zeros((4, n))
+    step_map = np.zeros((6, 13))
+    step_map[0:3, 9:] = thrust_k[0] * dt / af.mass_kg
+    step_map[3:, :9] = -dt_inv_inertia * gyro_map
+    step_map[3:, 9:] = dt_inv_inertia * thrust_k[1:]
+    increments = np.zeros((6, n))
+    dv_thrust, dw = increments[0:3], increments[3:6]
+    rate_sq_map = _coefficients((3, 9), [(r, c, 1.0) for r in range(3) for c in (0, 4, 8)])  # |w|^2, every row
+    t3, u3 = np.zeros((3, n)), np.zeros((3, n))
     t3_z, half_angle = t3[2], t3[0]
     delta = np.zeros((4, n))  # the attitude increment (cos(|w| dt/2), w sin(|w| dt/2) / |w|)
     delta_cos, delta_axis = delta[0], delta[1:4]
     outer = np.zeros((4, 4, n))
     outer_flat = outer.reshape(16, n)
     quat_a, quat_b, delta_b = quat[:, None, :], quat[None, :, :], delta[None, :, :]
+    # from the products q_a q_b of the unnormalised quaternion: R |q|^2 (9 rows), |q|^2 (9 rows), |q|^2 (4 rows)
+    rot_map = np.concatenate([_QUAT_TO_ROT, np.tile(np.eye(4).reshape(1, 16), (13, 1))])
+    rot_terms = np.zeros((22, n))
+    rot_scaled, norm_sq_9, norm_4 = rot_terms[0:9], rot_terms[9:18], rot_terms[18:22]
     keep, dt_, g_dt, half_dt, tiny = (_const(v) for v in (1.0 - kn.motor_alpha, dt, GRAVITY_MPS2 * dt, 0.5 * dt,
                                                             1e-300))
-    ones33, ones44 = np.ones((3, 3)), np.ones((4, 4))
     add, sub, mul, div, matmul, fmax = np.add, np.subtract, np.multiply, np.divide, np.matmul, np.fmax
-    sqrt, sin, cos = np.sqrt, np.sin, np.cos
+    sqrt, sin, cos, least = np.sqrt, np.sin, np.cos, np.minimum.reduce
 
     def integrate() -> None:
         # motors: exact first-order lag towards the commands; then omega^2
@@ -291,12 +289,12 @@ def _make_integrator(kn: _ArrayKernel, dt: float) -> Callable[[], None]:
         add(vel, t3, vel)
         mul(vel, dt_, t3)
         add(pos, t3, pos)
-        # body rates: w += dt J^-1 (tau - w x J w)
+        # body rates: w += dt J^-1 (tau - w x J w); their products for the next step
         add(rates, dw, rates)
+        mul(rates_a, rates_b, products_3x3)
         # attitude increment; for tiny rates sin(x) / |w| equals Bullet's Taylor series to rounding, so
         # the array kernel takes the quotient (guarded against 0 / 0)
-        mul(rates, rates, t3)
-        matmul(ones33, t3, u3)  # |w|^2 in every row
+        matmul(rate_sq_map, products, u3)  # |w|^2 in every row
         sqrt(u3, u3)
         mul(u3, half_dt, t3)
         cos(half_angle, delta_cos)
@@ -304,16 +302,15 @@ def _make_integrator(kn: _ArrayKernel, dt: float) -> Callable[[], None]:
         fmax(u3, tiny, u3)
         div(t3, u3, t3)
         mul(rates, t3, delta_axis)
-        # q = q (x) delta, normalised; its rotation matrix
+        # q = q (x) delta, normalised, and its rotation matrix (from the products of q before normalising)
         mul(quat_a, delta_b, outer)
         matmul(_QUAT_PRODUCT, outer_flat, quat)
-        mul(quat, quat, t4)
-        matmul(ones44, t4, t4)  # |q|^2 in every row
-        sqrt(t4, t4)
-        div(quat, t4, quat)
         mul(quat_a, quat_b, outer)
-        matmul(_QUAT_TO_ROT, outer_flat, rot)
-        if quat_w.min() <= 0.5:  # some drone turned by 120 degrees or more: pybullet's sign (see bullet_sign)
+        matmul(rot_map, outer_flat, rot_terms)
+        div(rot_scaled, norm_sq_9, rot)
+        sqrt(norm_4, norm_4)
+        div(quat, norm_4, quat)
+        if least(quat_w) <= 0.5:  # some drone turned by 120 degrees or more: pybullet's sign (see bullet_sign)
             for i in np.flatnonzero(quat_w <= 0.5).tolist():
                 quat[:, i] = bullet_sign(*quat[:, i].tolist(), rot[0, i], rot[4, i], rot[8, i])
 
@@ -328,16 +325,16 @@ def _make_controller(kn: _ArrayKernel, gains: ControllerGains) -> Callable[[np.n
     World-frame commands (3, N) m/s in; ``motor_alpha`` times the rotor speed commands into ``kn.cmd``.
     """
     af, n, s = kn.airframe, kn.n, kn.s
-    vel, rates, rot_flat = s[16:19], s[19:22], s[7:16]
+    vel, rot_flat = s[16:19], s[7:16]
     body_z = s[9:16:3]
     terms, rotor_cmd = kn.terms, kn.cmd
-    thrust_row, thrust, att_terms, rate_terms = terms[0:1], terms[0], terms[1:19], terms[19:22]
+    thrust_row, thrust, att_terms = terms[0:1], terms[0], terms[1:19]
     control_terms = terms[0:31]
     col, m = np.array, af.mass_kg
     m_velocity_p = _const(m * col(gains.velocity_p)[:, None], (3, n))
-    m_down, m_up, weight, tan_tilt, one, zero, tiny = (_const(v) for v in (
+    m_down, m_up, weight, tan_tilt, one, zero = (_const(v) for v in (
         -m * gains.max_accel_down_mps2, m * gains.max_accel_up_mps2, m * GRAVITY_MPS2, math.tan(gains.max_tilt_rad),
-        1.0, 0.0, 1e-300))  # fmt: skip
+        1.0, 0.0))  # fmt: skip
     # rotor thrusts clipped to the thrusts of [omega_min, omega_max], then alpha omega = sqrt(alpha^2 f / k)
     f_lo, f_hi = _const(af.thrust_coeff * max(af.omega_min_radps, 0.0) ** 2), _const(af.max_rotor_thrust_n)
     to_cmd = _const(kn.motor_alpha**2 / af.thrust_coeff)
@@ -360,19 +357,23 @@ def _make_controller(kn: _ArrayKernel, gains: ControllerGains) -> Callable[[np.n
     wrench_map[1:, 19:22] = -np.diag(rate_p_j)
     wrench_map[1:, 22:31] = _coefficients((3, 9), [(0, 5, jz - jy), (1, 6, jx - jz), (2, 1, jy - jx)])
     control_map = np.linalg.inv(af.allocation) @ wrench_map
-    ones33, ones13 = np.ones((3, 3)), np.ones((1, 3))
-    force, nrm, t3 = (np.zeros((3, n)) for _ in range(3))
-    force_x, force_y, force_z = force
-    t1, u1 = np.zeros(n), nrm[0]
+    ones13 = np.ones((1, 3))
     desired = np.zeros((3, 3, n))  # [i] = desired body axis i (world frame)
     desired_flat = desired.reshape(9, n)
     d_x, d_y, d_z = desired
+    d_yz = desired_flat[3:9]
+    force = d_z  # the force is computed in place of the desired z axis, which is its direction
+    force_x, force_y, force_z = force
+    force_xy = force[0:2]
+    t1, u1, t3 = np.zeros(n), np.zeros(n), np.zeros((3, n))
+    sq6, nrm6 = np.zeros((6, n)), np.zeros((6, n))
+    norms_map = np.kron(np.eye(2), np.ones((3, 3)))  # |y|^2 in rows 0-2, |z|^2 in rows 3-5
     yz_outer = np.zeros((3, 3, n))
     yz_flat, y_a, z_b = yz_outer.reshape(9, n), d_y[:, None, :], d_z[None, :, :]
     att_d = np.zeros((18, n))
     rotor_thrust = np.zeros((4, n))
     add, sub, mul, div, matmul, fmax, fmin = np.add, np.subtract, np.multiply, np.divide, np.matmul, np.fmax, np.fmin
-    sqrt, hypot, copyto = np.sqrt, np.hypot, np.copyto
+    sqrt, hypot = np.sqrt, np.hypot
 
     def control(velocity_cmd: np.ndarray) -> None:
         # desired_acceleration (times the mass): P on velocity, climb / sink limits, tilt limit horizontally
@@ -381,34 +382,28 @@ def _make_controller(kn: _ArrayKernel, gains: ControllerGains) -> Callable[[np.n
         fmax(force_z, m_down, force_z)
         fmin(force_z, m_up, force_z)
         add(force_z, weight, t1)
-        mul(t1, tan_tilt, t1)  # largest horizontal force
+        mul(t1, tan_tilt, t1)  # largest horizontal force, > 0 (the sink limit is below g)
         hypot(force_x, force_y, u1)
-        fmax(u1, tiny, u1)
-        div(t1, u1, t1)
-        fmin(t1, one, t1)
-        mul(force_x, t1, force_x)
-        mul(force_y, t1, force_y)
+        div(u1, t1, u1)
+        fmax(u1, one, u1)
+        div(force_xy, u1, force_xy)  # scaled down to the largest, direction kept
         add(force_z, weight, force_z)
-        # thrust_and_attitude: desired z along the force, y = z x heading, x = y x z; thrust along body z
-        mul(force, force, t3)
-        matmul(ones33, t3, nrm)  # |f|^2 in every row
-        sqrt(nrm, nrm)
-        div(force, nrm, d_z)
-        matmul(heading_cross, d_z, d_y)
-        mul(d_y, d_y, t3)
-        matmul(ones33, t3, nrm)
-        sqrt(nrm, nrm)
-        div(d_y, nrm, d_y)
-        mul(y_a, z_b, yz_outer)
-        matmul(_CROSS, yz_flat, d_x)
+        # thrust_and_attitude: thrust = force along body z; desired z along the force, y = z x heading
+        # (both normalised in one pass), x = y x z
         mul(force, body_z, t3)
         matmul(ones13, t3, thrust_row)
         fmax(thrust, zero, thrust)
+        matmul(heading_cross, force, d_y)
+        mul(d_yz, d_yz, sq6)
+        matmul(norms_map, sq6, nrm6)
+        sqrt(nrm6, nrm6)
+        div(d_yz, nrm6, d_yz)
+        mul(y_a, z_b, yz_outer)
+        matmul(_CROSS, yz_flat, d_x)
         # attitude error products, body rates; then [T, tau] and the mixer in one matmul
         desired_flat.take(pick_desired, 0, att_d)
         rot_flat.take(pick_rot, 0, att_terms)
         mul(att_terms, att_d, att_terms)
-        copyto(rate_terms, rates)
         matmul(control_map, control_terms, rotor_thrust)
         fmax(rotor_thrust, f_lo, rotor_thrust)
         fmin(rotor_thrust, f_hi, rotor_thrust)
@@ -443,7 +438,7 @@ class NativeFleet(Fleet):
         self.vectorised = self.num_drones > SCALAR_MAX_DRONES if vectorised is None else bool(vectorised)
         if self.vectorised:
             self._kernel = _ArrayKernel(self.airframe, self.num_drones, self.dt, self.motor_alpha)
-            self._cmd_source: object = None  # the last velocity commands seen by track (reused per tick)
+            self._cmd_rows: tuple = ()  # the last velocity commands converted by track (reused per tick)
             self._cmd_array = np.zeros((3, self.num_drones))
         else:
             self._scalar_step = make_scalar_step(self.airframe, self.dt, self.motor_alpha)
@@ -488,8 +483,8 @@ class NativeFleet(Fleet):
     def track(self, velocity_cmds: Sequence, states: list[DroneState], gains: ControllerGains) -> list[DroneState]:
         """One physics step under the cascaded controller; the fleet's own state is the input.
 
-        Array kernel: controller and step for all drones in one pass of array operations (the
-        commands are converted once per new ``velocity_cmds`` object, e.g. once per control tick).
+        Array kernel: controller and step for all drones in one pass of array operations (commands
+        are converted to an array only when they differ from the last step's, i.e. once per tick).
         """
         if not self.vectorised:
             control = self._controllers.get(gains)
@@ -503,12 +498,13 @@ class NativeFleet(Fleet):
             self._time_s += self.dt
             return list(new)
         kn = self._kernel
-        if velocity_cmds is not self._cmd_source:
-            cmds = np.asarray(velocity_cmds, dtype=np.float64)
+        rows = tuple(map(tuple, velocity_cmds))  # cheap for tuples (the rollout's): no copies
+        if rows != self._cmd_rows:
+            cmds = np.asarray(rows, dtype=np.float64)
             if cmds.shape != (self.num_drones, 3):
                 raise ValueError(f"velocity commands of shape {cmds.shape}, expected ({self.num_drones}, 3)")
             self._cmd_array[:] = cmds.T
-            self._cmd_source = velocity_cmds
+            self._cmd_rows = rows
         kn.tracker(gains)(self._cmd_array)
         self._time_s += self.dt
         return kn.states()
