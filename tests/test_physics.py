@@ -1,10 +1,10 @@
 """Physics back ends: pybullet and native agree; native against closed forms; choosing a back end.
 
 Parity: the same command sequences flown through pybullet and through both native kernels stay
-within ``TOLERANCE`` (position, attitude, velocity, body rates) over 60 s random flights. Measured
-gaps are ~1e-13 (rounding), the bounds are 1e-9: anything that changes the scheme (a damping term,
-explicit instead of semi-implicit Euler, another attitude update) moves them by orders of magnitude
-more (see ``test_tolerance_would_catch_a_different_scheme``).
+within ``PARITY_TOLERANCE`` (position, attitude, velocity, body rates) over 60 s random flights.
+Measured gaps are ~1e-13 (rounding), the bounds are 1e-9: anything that changes the scheme (a
+damping term, explicit instead of semi-implicit Euler, another attitude update) moves them by
+orders of magnitude more (see ``test_tolerance_would_catch_a_different_scheme``).
 """
 
 import json
@@ -24,6 +24,8 @@ from vitfly.sim import physics
 from vitfly.sim.controller import ControllerGains
 from vitfly.sim.physics import make_fleet, pybullet_available, resolve_physics
 from vitfly.sim.physics.native import SCALAR_MAX_DRONES
+from vitfly.sim.physics.parity import PARITY_TOLERANCE, state_array
+from vitfly.sim.physics.parity import state_gaps as gaps
 from vitfly.sim.policies import ExpertPolicy
 from vitfly.sim.quadrotor import GRAVITY_MPS2, Airframe
 from vitfly.sim.rollout import RolloutConfig, run_episodes
@@ -31,7 +33,7 @@ from vitfly.sim.scenes import make_scene
 
 AF, GAINS, HZ = Airframe(), ControllerGains(), 240.0
 START = (0.0, 0.0, 3.5)
-TOLERANCE = {"position_m": 1e-9, "attitude_rad": 1e-9, "velocity_mps": 1e-9, "body_rates_radps": 1e-9}
+TOLERANCE = PARITY_TOLERANCE
 NEEDS_PYBULLET = pytest.mark.skipif(not pybullet_available(), reason="pybullet is not installed (no wheel here)")
 KERNELS = [pytest.param({"vectorised": False}, id="scalar"), pytest.param({"vectorised": True}, id="array")]
 BACKENDS = [pytest.param(("pybullet", {}), id="pybullet", marks=NEEDS_PYBULLET),
@@ -58,23 +60,8 @@ def fly_commands(name: str, commands: np.ndarray, **kwargs) -> np.ndarray:
             rows = [tuple(c) for c in commands[t].tolist()]
             for _ in range(8):
                 states = fleet.track(rows, states, GAINS)
-            out[t] = [[*s.position, *s.quat, *s.velocity, *s.body_rates] for s in states]
+            out[t] = state_array(states)
     return out
-
-
-def gaps(a: np.ndarray, b: np.ndarray) -> dict[str, float]:
-    """Largest differences between two state histories (see ``fly_commands``)."""
-    qa, qb = a[..., 3:7], b[..., 3:7]
-    # angle of the relative rotation qa^-1 qb, robust near zero: 2 atan2(|vector part|, |scalar part|)
-    w = np.sum(qa * qb, axis=-1)
-    v = qa[..., :1] * qb[..., 1:] - qb[..., :1] * qa[..., 1:] - np.cross(qa[..., 1:], qb[..., 1:])
-    angle = 2.0 * np.arctan2(np.linalg.norm(v, axis=-1), np.abs(w))
-    return {
-        "position_m": float(np.abs(a[..., 0:3] - b[..., 0:3]).max()),
-        "attitude_rad": float(angle.max()),
-        "velocity_mps": float(np.abs(a[..., 7:10] - b[..., 7:10]).max()),
-        "body_rates_radps": float(np.abs(a[..., 10:13] - b[..., 10:13]).max()),
-    }
 
 
 def assert_within_tolerance(found: dict[str, float]) -> None:
@@ -115,8 +102,7 @@ def test_native_steps_rotor_commands_as_pybullet(kernel):
             fleet.reset(np.tile(START, (3, 1)))
             for c in cmds:
                 fleet.step(c.tolist())
-            finals.append((np.array([[*s.position, *s.quat, *s.velocity, *s.body_rates] for s in fleet.states()]),
-                           fleet.rotor_omega, fleet.time_s))
+            finals.append((state_array(fleet.states()), fleet.rotor_omega, fleet.time_s))
     (a, rotor_a, time_a), (b, rotor_b, time_b) = finals
     assert_within_tolerance(gaps(a[None], b[None]))
     # the same quaternion, sign included, also for the drone that turned over (see native.bullet_sign)

@@ -15,7 +15,7 @@ from vitfly.sim.quadrotor import GRAVITY_MPS2, Airframe
 
 AF, GAINS = Airframe(), ControllerGains()
 START = (0.0, 0.0, 3.5)
-NO_PYBULLET = pytest.mark.skipif(not pybullet_available(), reason="pybullet is not installed (no wheel for this Python)")
+NO_PYBULLET = pytest.mark.skipif(not pybullet_available(), reason="pybullet is not installed (no wheel here)")
 BACKENDS = [
     pytest.param(("pybullet", {}), id="pybullet", marks=NO_PYBULLET),
     pytest.param(("native", {"vectorised": False}), id="native-scalar"),
