@@ -53,7 +53,8 @@ class Fleet(ABC):
         # exact discretisation of the first-order motor lag over one step
         self.motor_alpha = 1.0 - math.exp(-self.dt / self.airframe.motor_time_constant_s)
         self._time_s = 0.0
-        self._controllers: dict[ControllerGains, object] = {}
+        self._gains: ControllerGains | None = None  # the gains of the last track call, and their controller
+        self._control = None
 
     @property
     def time_s(self) -> float:
@@ -88,11 +89,16 @@ class Fleet(ABC):
         the step. The same as ``step([velocity_control(c, s, airframe, gains) ...]); states()``;
         back ends override it to do the whole batch at once.
         """
-        control = self._controllers.get(gains)
-        if control is None:
-            control = self._controllers[gains] = make_velocity_controller(self.airframe, gains)
+        control = self.controller(gains)
         self.step([control(c, s) for c, s in zip(velocity_cmds, states, strict=True)], states)
         return self.states()
+
+    def controller(self, gains: ControllerGains):
+        """:func:`vitfly.sim.controller.make_velocity_controller` for these gains, built once per gains
+        object (looked up by identity: hashing the gains every physics step would cost more)."""
+        if gains is not self._gains:
+            self._gains, self._control = gains, make_velocity_controller(self.airframe, gains)
+        return self._control
 
     def close(self) -> None:  # noqa: B027 - optional: only back ends holding resources override it
         """Release what the back end holds (a pybullet client); the fleet is unusable afterwards."""

@@ -27,7 +27,7 @@ from functools import partial
 
 import numpy as np
 
-from vitfly.sim.controller import ControllerGains, make_velocity_controller
+from vitfly.sim.controller import ControllerGains
 from vitfly.sim.physics.base import Fleet
 from vitfly.sim.quadrotor import GRAVITY_MPS2, Airframe, DroneState
 
@@ -219,7 +219,8 @@ class _ArrayKernel:
         self.rotor[:] = self.airframe.hover_omega_radps
 
     def states(self) -> list[DroneState]:
-        return list(map(_MAKE_STATE, zip(*(b.tolist() for b in self.blocks), strict=True)))
+        p, q, r, v, w = self.blocks
+        return list(map(_MAKE_STATE, zip(p.tolist(), q.tolist(), r.tolist(), v.tolist(), w.tolist(), strict=False)))
 
     def step(self, rotor_omega_cmd: np.ndarray) -> None:
         """One physics step from rotor speed commands (4, N) rad/s."""
@@ -440,6 +441,7 @@ class NativeFleet(Fleet):
             self._kernel = _ArrayKernel(self.airframe, self.num_drones, self.dt, self.motor_alpha)
             self._cmd_rows: tuple = ()  # the last velocity commands converted by track (reused per tick)
             self._cmd_array = np.zeros((3, self.num_drones))
+            self._tracked_gains: ControllerGains | None = None
         else:
             self._scalar_step = make_scalar_step(self.airframe, self.dt, self.motor_alpha)
         self.reset(np.zeros((self.num_drones, 3)))
@@ -487,9 +489,7 @@ class NativeFleet(Fleet):
         are converted to an array only when they differ from the last step's, i.e. once per tick).
         """
         if not self.vectorised:
-            control = self._controllers.get(gains)
-            if control is None:
-                control = self._controllers[gains] = make_velocity_controller(self.airframe, gains)
+            control = self.controller(gains)
             advance = self._scalar_step
             self._states = new = [
                 advance(st, omega, control(c, st))
@@ -505,6 +505,8 @@ class NativeFleet(Fleet):
                 raise ValueError(f"velocity commands of shape {cmds.shape}, expected ({self.num_drones}, 3)")
             self._cmd_array[:] = cmds.T
             self._cmd_rows = rows
-        kn.tracker(gains)(self._cmd_array)
+        if gains is not self._tracked_gains:  # by identity, as Fleet.controller
+            self._tracked_gains, self._track = gains, kn.tracker(gains)
+        self._track(self._cmd_array)
         self._time_s += self.dt
         return kn.states()
