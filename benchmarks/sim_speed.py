@@ -9,8 +9,8 @@ Per back end (``--physics``, default: pybullet where installed, and native):
    (60 m at 5 m/s in spheres/medium, 30 Hz) replayed through ``Fleet.track`` (the cascaded
    controller and the rigid body at 240 Hz), once with one scene and once with 16 lockstep scenes
    in one fleet (the native back end steps all 16 in one array operation). Real-time factor =
-   simulated s / CPU s of this process, best of ``--repeats``. The replayed flights are compared
-   between back ends against ``vitfly.sim.physics.parity.PARITY_TOLERANCE``.
+   simulated s / CPU s of this process, best of ``--repeats`` (the back ends taking turns). The
+   replayed flights are compared between back ends against ``vitfly.sim.physics.parity.PARITY_TOLERANCE``.
 2. End to end: the real-time factor of one expert trial with the depth camera (every frame rendered
    and kept, as `collect` does), median over ``--trials`` scenes; and closed-loop evaluation trials
    per minute with 16 lockstep scenes (``vitfly.eval.sweep.fly_batch``: expert policy, contact
@@ -62,26 +62,31 @@ def expert_commands(num_scenes: int, speed: float, physics: str) -> np.ndarray:
     return out
 
 
-def replay(physics: str, commands: np.ndarray, repeats: int) -> tuple[float, np.ndarray]:
-    """Best CPU seconds to fly ``commands`` through the back end, and the (ticks, N, 13) states flown."""
+def replay(backends: list[str], commands: np.ndarray, repeats: int) -> dict[str, tuple[float, np.ndarray]]:
+    """Per back end: the best CPU seconds to fly ``commands`` through it, and the (ticks, N, 13) states flown.
+
+    The back ends take turns, repeat by repeat, so that a change in the machine's load hits them alike.
+    """
     ticks, n, _ = commands.shape
     gains = ControllerGains()
     rows = [[tuple(c) for c in tick.tolist()] for tick in commands]
-    best, history = float("inf"), np.zeros((ticks, n, 13))
+    best = dict.fromkeys(backends, float("inf"))
+    history = {b: np.zeros((ticks, n, 13)) for b in backends}
     for rep in range(repeats + 1):  # the first records the states flown, untimed
-        with make_fleet(physics, n) as fleet:
-            fleet.reset(np.tile([0.0, 0.0, 3.5], (n, 1)))
-            states = fleet.states()
-            start = time.process_time()
-            for t in range(ticks):
-                for _ in range(SUBSTEPS):
-                    states = fleet.track(rows[t], states, gains)
-                if rep == 0:
-                    history[t] = state_array(states)
-            cpu = time.process_time() - start
-        if rep > 0:
-            best = min(best, cpu)
-    return best, history
+        for physics in backends:
+            with make_fleet(physics, n) as fleet:
+                fleet.reset(np.tile([0.0, 0.0, 3.5], (n, 1)))
+                states = fleet.states()
+                start = time.process_time()
+                for t in range(ticks):
+                    for _ in range(SUBSTEPS):
+                        states = fleet.track(rows[t], states, gains)
+                    if rep == 0:
+                        history[physics][t] = state_array(states)
+                cpu = time.process_time() - start
+            if rep > 0:
+                best[physics] = min(best[physics], cpu)
+    return {b: (best[b], history[b]) for b in backends}
 
 
 def trial_rtf(trials: int, speed: float, physics: str) -> tuple[list[float], list[float], list]:
@@ -164,8 +169,9 @@ def main() -> None:
     flown: dict = {}
     for n, cmds in commands.items():
         sim_s = cmds.shape[0] * SUBSTEPS / 240.0
+        replays = replay(args.physics, cmds, args.repeats)
         for physics in args.physics:
-            cpu, history = replay(physics, cmds, args.repeats)
+            cpu, history = replays[physics]
             flown[(physics, n)] = history
             row = out.setdefault("backend_alone", {}).setdefault(f"{n}_scenes", {})
             row[physics] = {"sim_s": sim_s, "cpu_s": cpu, "rtf": sim_s / cpu, "drone_s_per_s": n * sim_s / cpu}
