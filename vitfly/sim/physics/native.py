@@ -13,7 +13,7 @@ Two kernels compute the same maths:
   with the cascaded controller of :mod:`vitfly.sim.controller` vectorised the same way
   (:meth:`NativeFleet.track`);
 - scalar kernel: Python floats, one drone at a time, for fleets of a few drones, where numpy's
-  per-call overhead (~0.3 us a call, ~100 calls a step) would cost more than the arithmetic.
+  per-call overhead (~0.3 us a call, ~60 calls a step) would cost more than the arithmetic.
 
 ``NativeFleet`` picks the array kernel above ``SCALAR_MAX_DRONES`` drones (the measured break-even
 point, ``benchmarks/sim_speed.py``) unless told otherwise.
