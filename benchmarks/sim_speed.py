@@ -14,7 +14,8 @@ Per back end (``--physics``, default: pybullet where installed, and native):
 2. End to end: the real-time factor of one expert trial with the depth camera (every frame rendered
    and kept, as `collect` does), median over ``--trials`` scenes; and closed-loop evaluation trials
    per minute with 16 lockstep scenes (``vitfly.eval.sweep.fly_batch``: expert policy, contact
-   tests, metrics, the trials.jsonl write), with outcome and path agreement between back ends.
+   tests, metrics, the trials.jsonl write), with outcome and path agreement between back ends. The
+   back ends take turns here too, trial by trial and batch by batch.
    The expert, camera and bookkeeping cost the same on every back end, so these gain less.
 3. Depth frames per second (the camera alone) and collection frames per second with ``--workers``
    1 and 2 (`vitfly collect`'s library call, HDF5 writes included).
@@ -89,35 +90,47 @@ def replay(backends: list[str], commands: np.ndarray, repeats: int) -> dict[str,
     return {b: (best[b], history[b]) for b in backends}
 
 
-def trial_rtf(trials: int, speed: float, physics: str) -> tuple[list[float], list[float], list]:
-    """Real-time factors of whole expert trials with the camera, by wall clock and by CPU time."""
-    cfg = RolloutConfig(record_depth=True, physics=physics)
-    wall_rtf, cpu_rtf, results = [], [], []
-    run_episodes([make_scene("spheres", "medium", 999)], [speed], ExpertPolicy(), cfg)  # warm-up
+def trial_rtf(trials: int, speed: float, backends: list[str]) -> dict[str, tuple[list, list, list]]:
+    """Per back end: real-time factors of whole expert trials with the camera, by wall clock and by CPU
+    time, and the results (the back ends take turns, trial by trial)."""
+    out: dict = {b: ([], [], []) for b in backends}
+    for physics in backends:  # warm-up
+        run_episodes([make_scene("spheres", "medium", 999)], [speed], ExpertPolicy(), RolloutConfig(physics=physics))
     for i in range(trials):
         scene = make_scene("spheres", "medium", 20_000 + i)
-        start, start_cpu = time.perf_counter(), time.process_time()
-        res = run_episodes([scene], [speed], ExpertPolicy(), cfg)[0]
-        wall, cpu = time.perf_counter() - start, time.process_time() - start_cpu
-        wall_rtf.append(res.summary.duration_s / wall)
-        cpu_rtf.append(res.summary.duration_s / cpu)
-        results.append(res)
-    return wall_rtf, cpu_rtf, results
+        for physics in backends:
+            cfg = RolloutConfig(record_depth=True, physics=physics)
+            start, start_cpu = time.perf_counter(), time.process_time()
+            res = run_episodes([scene], [speed], ExpertPolicy(), cfg)[0]
+            wall, cpu = time.perf_counter() - start, time.process_time() - start_cpu
+            wall_rtf, cpu_rtf, results = out[physics]
+            wall_rtf.append(res.summary.duration_s / wall)
+            cpu_rtf.append(res.summary.duration_s / cpu)
+            results.append(res)
+    return out
 
 
-def evaluation(physics: str, trials: int, num_envs: int, speed: float, workdir: Path) -> dict:
-    """Expert evaluation through the code behind `vitfly evaluate`, ``num_envs`` lockstep scenes."""
-    cfg = SweepConfig(policy="expert", env=["spheres"], speeds=[speed], trials=trials, seed=0, num_envs=num_envs,
-                      out=str(workdir / physics), gif=False, plots=False, physics=physics).validate()
-    policy = PolicySource(cfg.policy, None, cfg.backend, "cpu", 1).build()
-    out_file = Path(cfg.out) / records.TRIALS_FILE
-    start, start_cpu = time.perf_counter(), time.process_time()
-    for batch in make_batches(plan_trials(cfg), num_envs):
-        fly_batch(batch, policy, cfg, out_file)
-    wall, cpu = time.perf_counter() - start, time.process_time() - start_cpu
-    flown = sorted(records.read_records(out_file), key=lambda r: r.trial)
-    return {"trials": len(flown), "wall_s": wall, "cpu_s": cpu, "trials_per_min_cpu": 60.0 * len(flown) / cpu,
-            "trials_per_min_wall": 60.0 * len(flown) / wall, "records": flown}
+def evaluation(backends: list[str], trials: int, num_envs: int, speed: float, workdir: Path) -> dict[str, dict]:
+    """Per back end: expert evaluation through the code behind `vitfly evaluate`, ``num_envs`` lockstep
+    scenes (the back ends take turns, batch by batch)."""
+    policy = PolicySource("expert", None, "eager", "cpu", 1).build()
+    cfgs = {b: SweepConfig(policy="expert", env=["spheres"], speeds=[speed], trials=trials, seed=0,
+                           num_envs=num_envs, out=str(workdir / b), gif=False, plots=False, physics=b).validate()
+            for b in backends}
+    wall, cpu = dict.fromkeys(backends, 0.0), dict.fromkeys(backends, 0.0)
+    for batch in make_batches(plan_trials(cfgs[backends[0]]), num_envs):
+        for physics, cfg in cfgs.items():
+            start, start_cpu = time.perf_counter(), time.process_time()
+            fly_batch(batch, policy, cfg, Path(cfg.out) / records.TRIALS_FILE)
+            wall[physics] += time.perf_counter() - start
+            cpu[physics] += time.process_time() - start_cpu
+    out = {}
+    for physics, cfg in cfgs.items():
+        flown = sorted(records.read_records(Path(cfg.out) / records.TRIALS_FILE), key=lambda r: r.trial)
+        out[physics] = {"trials": len(flown), "wall_s": wall[physics], "cpu_s": cpu[physics],
+                        "trials_per_min_cpu": 60.0 * len(flown) / cpu[physics],
+                        "trials_per_min_wall": 60.0 * len(flown) / wall[physics], "records": flown}
+    return out
 
 
 def depth_fps(results) -> float:
@@ -185,12 +198,13 @@ def main() -> None:
 
     print(f"2. end to end, {args.trials} expert trials with the camera (median), and {args.eval_trials} evaluation "
           f"trials with {args.lockstep} lockstep scenes")
-    results, ref_records = None, []
+    trials = trial_rtf(args.trials, args.speed, args.physics)
+    results, ref_records = trials[ref][2], []
     with tempfile.TemporaryDirectory(prefix="vitfly-sim-speed-") as tmp:
+        evaluations = evaluation(args.physics, args.eval_trials, args.lockstep, args.speed, Path(tmp))
         for physics in args.physics:
-            wall_rtf, cpu_rtf, res = trial_rtf(args.trials, args.speed, physics)
-            results = results or res
-            ev = evaluation(physics, args.eval_trials, args.lockstep, args.speed, Path(tmp))
+            wall_rtf, cpu_rtf, res = trials[physics]
+            ev = evaluations[physics]
             row = out.setdefault("end_to_end", {})[physics] = {
                 "trial_rtf_wall_median": float(np.median(wall_rtf)), "trial_rtf_cpu_median": float(np.median(cpu_rtf)),
                 "trial_success": f"{sum(r.summary.success for r in res)}/{len(res)}",
