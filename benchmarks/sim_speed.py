@@ -1,14 +1,24 @@
-"""Simulator speed: real-time factor of an expert trial, depth frames per second, collection frames/s.
+"""Simulator speed, every physics back end side by side in one run (one core).
 
-    .venv/bin/python benchmarks/sim_speed.py                 # all three, defaults below
-    .venv/bin/python benchmarks/sim_speed.py --trials 10 --collect-trajectories 16 --json out.json
+    .venv/bin/python benchmarks/sim_speed.py                           # all, both back ends (where installed)
+    .venv/bin/python benchmarks/sim_speed.py --physics native --skip-collect --json out.json
 
-1. Real-time factor (simulated s / wall s) of one expert trial: 60 m at 5 m/s in spheres/medium,
-   physics 240 Hz, expert and depth camera at 30 Hz (every frame rendered and kept, as `collect`
-   does), one process, one BLAS/OpenMP thread. Median over ``--trials`` scenes.
-2. Depth frames per second: the camera alone, re-rendering the poses of those trials.
-3. Collection frames per second with ``--workers 2`` (also 1 for comparison): `vitfly collect`'s
-   library call end to end, HDF5 writes included, into a temporary file.
+Per back end (``--physics``, default: pybullet where installed, and native):
+
+1. Back end alone, expert flight (the targets of issue 12): the velocity commands of expert trials
+   (60 m at 5 m/s in spheres/medium, 30 Hz) replayed through ``Fleet.track`` (the cascaded
+   controller and the rigid body at 240 Hz), once with one scene and once with 16 lockstep scenes
+   in one fleet (the native back end steps all 16 in one array operation). Real-time factor =
+   simulated s / CPU s of this process, best of ``--repeats`` (the back ends taking turns). The
+   replayed flights are compared between back ends against ``vitfly.sim.physics.parity.PARITY_TOLERANCE``.
+2. End to end: the real-time factor of one expert trial with the depth camera (every frame rendered
+   and kept, as `collect` does), median over ``--trials`` scenes; and closed-loop evaluation trials
+   per minute with 16 lockstep scenes (``vitfly.eval.sweep.fly_batch``: expert policy, contact
+   tests, metrics, the trials.jsonl write), with outcome and path agreement between back ends. The
+   back ends take turns here too, trial by trial and batch by batch.
+   The expert, camera and bookkeeping cost the same on every back end, so these gain less.
+3. Depth frames per second (the camera alone) and collection frames per second with ``--workers``
+   1 and 2 (`vitfly collect`'s library call, HDF5 writes included).
 """
 
 from __future__ import annotations
@@ -28,25 +38,99 @@ from pathlib import Path  # noqa: E402
 
 import numpy as np  # noqa: E402
 
+from vitfly.eval import records  # noqa: E402
+from vitfly.eval.config import SweepConfig  # noqa: E402
+from vitfly.eval.policy_source import PolicySource  # noqa: E402
+from vitfly.eval.sweep import fly_batch, make_batches, plan_trials  # noqa: E402
 from vitfly.sim import DepthCamera, ExpertPolicy, RolloutConfig, make_scene, run_episodes  # noqa: E402
 from vitfly.sim.collect import CollectConfig, collect  # noqa: E402
+from vitfly.sim.controller import ControllerGains  # noqa: E402
+from vitfly.sim.physics import make_fleet, pybullet_available  # noqa: E402
+from vitfly.sim.physics.parity import PARITY_TOLERANCE, state_array, state_gaps, within_tolerance  # noqa: E402
 from vitfly.sim.quadrotor import quat_wxyz_to_matrix  # noqa: E402
 
+SUBSTEPS = 8  # 240 Hz physics per 30 Hz tick
 
-def trial_rtf(trials: int, speed: float) -> tuple[list[float], list[float], list]:
-    """Real-time factors by wall clock and by this process's CPU time (robust to a busy machine)."""
-    cfg = RolloutConfig(record_depth=True)
-    wall_rtf, cpu_rtf, results = [], [], []
-    run_episodes([make_scene("spheres", "medium", 999)], [speed], ExpertPolicy(), cfg)  # warm-up
+
+def expert_commands(num_scenes: int, speed: float, physics: str) -> np.ndarray:
+    """(ticks, scenes, 3) velocity commands (m/s) of expert trials; finished trials hover (zeros)."""
+    scenes = [make_scene("spheres", "medium", 30_000 + i) for i in range(num_scenes)]
+    logs = [r.log.command for r in run_episodes(scenes, [speed] * num_scenes, ExpertPolicy(),
+                                                RolloutConfig(physics=physics))]
+    out = np.zeros((max(len(c) for c in logs), num_scenes, 3))
+    for i, c in enumerate(logs):
+        out[: len(c), i] = c
+    return out
+
+
+def replay(backends: list[str], commands: np.ndarray, repeats: int) -> dict[str, tuple[float, np.ndarray]]:
+    """Per back end: the best CPU seconds to fly ``commands`` through it, and the (ticks, N, 13) states flown.
+
+    The back ends take turns, repeat by repeat, so that a change in the machine's load hits them alike.
+    """
+    ticks, n, _ = commands.shape
+    gains = ControllerGains()
+    rows = [[tuple(c) for c in tick.tolist()] for tick in commands]
+    best = dict.fromkeys(backends, float("inf"))
+    history = {b: np.zeros((ticks, n, 13)) for b in backends}
+    for rep in range(repeats + 1):  # the first records the states flown, untimed
+        for physics in backends:
+            with make_fleet(physics, n) as fleet:
+                fleet.reset(np.tile([0.0, 0.0, 3.5], (n, 1)))
+                states = fleet.states()
+                start = time.process_time()
+                for t in range(ticks):
+                    for _ in range(SUBSTEPS):
+                        states = fleet.track(rows[t], states, gains)
+                    if rep == 0:
+                        history[physics][t] = state_array(states)
+                cpu = time.process_time() - start
+            if rep > 0:
+                best[physics] = min(best[physics], cpu)
+    return {b: (best[b], history[b]) for b in backends}
+
+
+def trial_rtf(trials: int, speed: float, backends: list[str]) -> dict[str, tuple[list, list, list]]:
+    """Per back end: real-time factors of whole expert trials with the camera, by wall clock and by CPU
+    time, and the results (the back ends take turns, trial by trial)."""
+    out: dict = {b: ([], [], []) for b in backends}
+    for physics in backends:  # warm-up
+        run_episodes([make_scene("spheres", "medium", 999)], [speed], ExpertPolicy(), RolloutConfig(physics=physics))
     for i in range(trials):
         scene = make_scene("spheres", "medium", 20_000 + i)
-        start, start_cpu = time.perf_counter(), time.process_time()
-        res = run_episodes([scene], [speed], ExpertPolicy(), cfg)[0]
-        wall, cpu = time.perf_counter() - start, time.process_time() - start_cpu
-        wall_rtf.append(res.summary.duration_s / wall)
-        cpu_rtf.append(res.summary.duration_s / cpu)
-        results.append(res)
-    return wall_rtf, cpu_rtf, results
+        for physics in backends:
+            cfg = RolloutConfig(record_depth=True, physics=physics)
+            start, start_cpu = time.perf_counter(), time.process_time()
+            res = run_episodes([scene], [speed], ExpertPolicy(), cfg)[0]
+            wall, cpu = time.perf_counter() - start, time.process_time() - start_cpu
+            wall_rtf, cpu_rtf, results = out[physics]
+            wall_rtf.append(res.summary.duration_s / wall)
+            cpu_rtf.append(res.summary.duration_s / cpu)
+            results.append(res)
+    return out
+
+
+def evaluation(backends: list[str], trials: int, num_envs: int, speed: float, workdir: Path) -> dict[str, dict]:
+    """Per back end: expert evaluation through the code behind `vitfly evaluate`, ``num_envs`` lockstep
+    scenes (the back ends take turns, batch by batch)."""
+    policy = PolicySource("expert", None, "eager", "cpu", 1).build()
+    cfgs = {b: SweepConfig(policy="expert", env=["spheres"], speeds=[speed], trials=trials, seed=0,
+                           num_envs=num_envs, out=str(workdir / b), gif=False, plots=False, physics=b).validate()
+            for b in backends}
+    wall, cpu = dict.fromkeys(backends, 0.0), dict.fromkeys(backends, 0.0)
+    for batch in make_batches(plan_trials(cfgs[backends[0]]), num_envs):
+        for physics, cfg in cfgs.items():
+            start, start_cpu = time.perf_counter(), time.process_time()
+            fly_batch(batch, policy, cfg, Path(cfg.out) / records.TRIALS_FILE)
+            wall[physics] += time.perf_counter() - start
+            cpu[physics] += time.process_time() - start_cpu
+    out = {}
+    for physics, cfg in cfgs.items():
+        flown = sorted(records.read_records(Path(cfg.out) / records.TRIALS_FILE), key=lambda r: r.trial)
+        out[physics] = {"trials": len(flown), "wall_s": wall[physics], "cpu_s": cpu[physics],
+                        "trials_per_min_cpu": 60.0 * len(flown) / cpu[physics],
+                        "trials_per_min_wall": 60.0 * len(flown) / wall[physics], "records": flown}
+    return out
 
 
 def depth_fps(results) -> float:
@@ -61,8 +145,8 @@ def depth_fps(results) -> float:
     return frames / (time.perf_counter() - start)
 
 
-def collect_fps(workers: int, trajectories: int) -> tuple[float, int, float]:
-    cfg = CollectConfig(trajectories=trajectories, workers=workers, seed=5, speeds=(3.0, 7.0))
+def collect_fps(workers: int, trajectories: int, physics: str) -> tuple[float, int, float]:
+    cfg = CollectConfig(trajectories=trajectories, workers=workers, seed=5, speeds=(3.0, 7.0), physics=physics)
     with tempfile.TemporaryDirectory() as tmp:
         start = time.perf_counter()
         summary = collect(cfg, Path(tmp) / "bench.h5", progress=False)
@@ -70,37 +154,92 @@ def collect_fps(workers: int, trajectories: int) -> tuple[float, int, float]:
     return summary.frames / wall, summary.frames, wall
 
 
+def fmt_gaps(gaps: dict) -> str:
+    return ", ".join(f"{k} {v:.1e}" for k, v in gaps.items())
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--trials", type=int, default=5, help="expert trials for the real-time factor")
-    parser.add_argument("--speed", type=float, default=5.0, help="desired speed of those trials, m/s")
+    default_physics = ["pybullet", "native"] if pybullet_available() else ["native"]
+    parser.add_argument("--physics", nargs="+", choices=("pybullet", "native"), default=default_physics,
+                        help="back ends to measure side by side (the first is the reference for agreement)")
+    parser.add_argument("--trials", type=int, default=5, help="expert trials with the camera, per back end")
+    parser.add_argument("--speed", type=float, default=5.0, help="desired speed of every flight, m/s")
+    parser.add_argument("--lockstep", type=int, default=16, help="scenes stepped together")
+    parser.add_argument("--eval-trials", type=int, default=32, help="evaluation trials per back end")
+    parser.add_argument("--repeats", type=int, default=5, help="replays per back end (best CPU time counts)")
     parser.add_argument("--collect-trajectories", type=int, default=8, help="trajectories per collect run")
     parser.add_argument("--skip-collect", action="store_true")
     parser.add_argument("--json", help="also write the numbers here")
     args = parser.parse_args()
+    ref = args.physics[0]
 
-    out: dict = {"machine": f"{platform.processor() or platform.machine()}, {os.cpu_count()} logical CPUs"}
-    wall_rtf, cpu_rtf, results = trial_rtf(args.trials, args.speed)
-    out["rtf_wall_median"], out["rtf_wall_min"] = float(np.median(wall_rtf)), float(np.min(wall_rtf))
-    out["rtf_cpu_median"] = float(np.median(cpu_rtf))
-    out["expert_success"] = f"{sum(r.summary.success for r in results)}/{len(results)}"
-    print(
-        f"real-time factor, expert trial spheres/medium {args.speed:g} m/s, 30 Hz camera, 1 thread, "
-        f"{args.trials} trials: wall clock median {out['rtf_wall_median']:.1f} (min {out['rtf_wall_min']:.1f}), "
-        f"CPU time median {out['rtf_cpu_median']:.1f}"
-    )
+    out: dict = {"machine": f"{platform.processor() or platform.machine()}, {os.cpu_count()} logical CPUs",
+                 "python": platform.python_version(), "physics": args.physics, "tolerance": PARITY_TOLERANCE}
+    commands = {1: expert_commands(1, args.speed, ref), args.lockstep: expert_commands(args.lockstep, args.speed, ref)}
+    print(f"1. back end alone: expert velocity commands ({args.speed:g} m/s, spheres/medium) through the controller "
+          f"and the rigid body at 240 Hz, CPU time, best of {args.repeats}")
+    flown: dict = {}
+    for n, cmds in commands.items():
+        sim_s = cmds.shape[0] * SUBSTEPS / 240.0
+        replays = replay(args.physics, cmds, args.repeats)
+        for physics in args.physics:
+            cpu, history = replays[physics]
+            flown[(physics, n)] = history
+            row = out.setdefault("backend_alone", {}).setdefault(f"{n}_scenes", {})
+            row[physics] = {"sim_s": sim_s, "cpu_s": cpu, "rtf": sim_s / cpu, "drone_s_per_s": n * sim_s / cpu}
+            line = f"   {n:2d} scene(s), {physics:8s}: real-time factor {sim_s / cpu:7.1f}"
+            if physics != ref:
+                ratio = row[ref]["cpu_s"] / cpu
+                gaps = state_gaps(flown[(ref, n)], history)
+                row[physics].update(speedup=ratio, gaps=gaps, within_tolerance=within_tolerance(gaps))
+                line += f"  ({ratio:.2f}x {ref}; gaps to {ref}: {fmt_gaps(gaps)})"
+            print(line, flush=True)
+
+    print(f"2. end to end, {args.trials} expert trials with the camera (median), and {args.eval_trials} evaluation "
+          f"trials with {args.lockstep} lockstep scenes")
+    trials = trial_rtf(args.trials, args.speed, args.physics)
+    results, ref_records = trials[ref][2], []
+    with tempfile.TemporaryDirectory(prefix="vitfly-sim-speed-") as tmp:
+        evaluations = evaluation(args.physics, args.eval_trials, args.lockstep, args.speed, Path(tmp))
+        for physics in args.physics:
+            wall_rtf, cpu_rtf, res = trials[physics]
+            ev = evaluations[physics]
+            row = out.setdefault("end_to_end", {})[physics] = {
+                "trial_rtf_wall_median": float(np.median(wall_rtf)), "trial_rtf_cpu_median": float(np.median(cpu_rtf)),
+                "trial_success": f"{sum(r.summary.success for r in res)}/{len(res)}",
+                **{k: v for k, v in ev.items() if k != "records"}}
+            line = (f"   {physics:8s}: trial real-time factor {row['trial_rtf_cpu_median']:6.1f} (CPU), "
+                    f"{row['trial_rtf_wall_median']:6.1f} (wall); evaluation {row['trials_per_min_cpu']:6.1f} "
+                    f"trials/min (CPU), {row['trials_per_min_wall']:6.1f} (wall)")
+            if physics != ref:
+                base = out["end_to_end"][ref]
+                mine, theirs = ev["records"], ref_records
+                same = sum((a.success, a.end_reason, a.extra["physics_collisions"]) ==
+                           (b.success, b.end_reason, b.extra["physics_collisions"]) for a, b in zip(mine, theirs,
+                                                                                                    strict=True))
+                path_gap = max(float(np.abs(np.asarray(a.path["position"]) - np.asarray(b.path["position"])).max())
+                               for a, b in zip(mine, theirs, strict=True) if len(a.path["time"]) == len(b.path["time"]))
+                row.update(trial_rtf_speedup=row["trial_rtf_cpu_median"] / base["trial_rtf_cpu_median"],
+                           eval_speedup=row["trials_per_min_cpu"] / base["trials_per_min_cpu"],
+                           same_outcome=f"{same}/{len(mine)}", max_path_gap_m=path_gap)
+                line += (f"  ({row['trial_rtf_speedup']:.2f}x and {row['eval_speedup']:.2f}x {ref}; same outcome "
+                         f"{same}/{len(mine)}, paths within {path_gap:.0e} m as stored, 0.1 mm rounding)")
+            else:
+                ref_records = ev["records"]
+            print(line, flush=True)
+
     out["depth_fps"] = depth_fps(results)
-    print(f"depth frames per second (60x90, camera alone): {out['depth_fps']:.0f}")
+    print(f"3. depth frames per second (60x90, camera alone): {out['depth_fps']:.0f}")
     if not args.skip_collect:
-        for workers in (1, 2):
-            fps, frames, wall = collect_fps(workers, args.collect_trajectories)
-            out[f"collect_fps_workers{workers}"] = fps
-            print(
-                f"collect, --workers {workers}: {fps:.0f} frames/s ({frames} frames in {wall:.1f} s, "
-                f"{args.collect_trajectories} trajectories, HDF5 writes included)"
-            )
+        for physics in args.physics:
+            for workers in (1, 2):
+                fps, frames, wall = collect_fps(workers, args.collect_trajectories, physics)
+                out.setdefault("collect_fps", {})[f"{physics}_workers{workers}"] = fps
+                print(f"   collect, {physics}, --workers {workers}: {fps:.0f} frames/s ({frames} frames in "
+                      f"{wall:.1f} s, {args.collect_trajectories} trajectories, HDF5 writes included)", flush=True)
     if args.json:
-        Path(args.json).write_text(json.dumps(out, indent=2))
+        Path(args.json).write_text(json.dumps(out, indent=2, default=str))
 
 
 if __name__ == "__main__":

@@ -1,4 +1,8 @@
-"""Quadrotor dynamics + cascaded controller: signs, frames and tracking, on real pybullet."""
+"""Quadrotor dynamics + cascaded controller: signs, frames and tracking, on every physics back end.
+
+Each test runs on real pybullet (skipped where it is not installed), the native back end's scalar
+kernel and its array kernel (``BACKENDS``).
+"""
 
 import math
 
@@ -6,16 +10,34 @@ import numpy as np
 import pytest
 
 from vitfly.sim.controller import ControllerGains, desired_acceleration, mix, velocity_control
-from vitfly.sim.quadrotor import GRAVITY_MPS2, Airframe, QuadrotorFleet
+from vitfly.sim.physics import make_fleet, pybullet_available
+from vitfly.sim.quadrotor import GRAVITY_MPS2, Airframe
 
 AF, GAINS = Airframe(), ControllerGains()
 START = (0.0, 0.0, 3.5)
+NO_PYBULLET = pytest.mark.skipif(not pybullet_available(), reason="pybullet is not installed (no wheel here)")
+BACKENDS = [
+    pytest.param(("pybullet", {}), id="pybullet", marks=NO_PYBULLET),
+    pytest.param(("native", {"vectorised": False}), id="native-scalar"),
+    pytest.param(("native", {"vectorised": True}), id="native-array"),
+]
 
 
-def fly(commands, seconds: float, physics_hz: float = 240.0):
+@pytest.fixture(params=BACKENDS)
+def backend(request):
+    """(name, keyword arguments) of a physics back end, for ``new_fleet``."""
+    return request.param
+
+
+def new_fleet(backend, num_drones: int, physics_hz: float = 240.0):
+    name, kwargs = backend
+    return make_fleet(name, num_drones, AF, physics_hz, **kwargs)
+
+
+def fly(backend, commands, seconds: float, physics_hz: float = 240.0):
     """Fly one drone per command (world-frame m/s) from START; returns times and per-drone states."""
     commands = [tuple(map(float, c)) for c in commands]
-    with QuadrotorFleet(len(commands), AF, physics_hz) as fleet:
+    with new_fleet(backend, len(commands), physics_hz) as fleet:
         fleet.reset(np.tile(START, (len(commands), 1)))
         states = fleet.states()
         history = []
@@ -46,8 +68,8 @@ def test_mix_inverts_the_allocation():
     np.testing.assert_allclose(wrench, [thrust, *torques], rtol=1e-9, atol=1e-12)
 
 
-def test_motor_lag_reaches_63_percent_after_one_time_constant():
-    with QuadrotorFleet(1, AF, 1000.0) as fleet:
+def test_motor_lag_reaches_63_percent_after_one_time_constant(backend):
+    with new_fleet(backend, 1, 1000.0) as fleet:
         fleet.reset(np.array([START]))
         start = AF.hover_omega_radps
         target = start + 500.0
@@ -57,16 +79,16 @@ def test_motor_lag_reaches_63_percent_after_one_time_constant():
     assert reached == pytest.approx(1 - math.exp(-1), abs=0.01)
 
 
-def test_hover_holds_altitude_and_position():
-    (t, states), *_ = fly([(0, 0, 0)], 3.0)[-1:]
+def test_hover_holds_altitude_and_position(backend):
+    (t, states), *_ = fly(backend, [(0, 0, 0)], 3.0)[-1:]
     p = states[0].position
     assert t == pytest.approx(3.0)
     assert abs(p[2] - 3.5) < 0.02 and abs(p[0]) < 0.01 and abs(p[1]) < 0.01
     assert tilt_deg(states[0]) < 0.5
 
 
-def test_forward_5mps_tracked_within_10_percent_after_1_5_s():
-    history = fly([(5, 0, 0)], 3.0)
+def test_forward_5mps_tracked_within_10_percent_after_1_5_s(backend):
+    history = fly(backend, [(5, 0, 0)], 3.0)
     after = [s[0] for t, s in history if t >= 1.5]
     vx = np.array([s.velocity[0] for s in after])
     assert np.all(np.abs(vx - 5.0) <= 0.5), (vx.min(), vx.max())
@@ -75,8 +97,8 @@ def test_forward_5mps_tracked_within_10_percent_after_1_5_s():
     assert after[-1].position[0] > 10.0  # it went forward (+x), not backward
 
 
-def test_forward_acceleration_pitches_the_nose_down():
-    history = fly([(5, 0, 0)], 0.3)
+def test_forward_acceleration_pitches_the_nose_down(backend):
+    history = fly(backend, [(5, 0, 0)], 0.3)
     state = history[-1][1][0]
     # body x axis in the world frame is column 0 of R: its z component is negative when pitched down,
     # and the thrust axis (column 2) leans forward
@@ -88,8 +110,8 @@ def test_forward_acceleration_pitches_the_nose_down():
     "command, axis, sign",
     [((0, 2, 0), 1, +1), ((0, -2, 0), 1, -1), ((0, 0, 1), 2, +1), ((0, 0, -1), 2, -1), ((-2, 0, 0), 0, -1)],
 )
-def test_lateral_and_vertical_commands_move_the_right_way(command, axis, sign):
-    history = fly([command], 2.0)
+def test_lateral_and_vertical_commands_move_the_right_way(backend, command, axis, sign):
+    history = fly(backend, [command], 2.0)
     final = history[-1][1][0]
     moved = final.position[axis] - START[axis]
     assert sign * moved > 1.0
@@ -98,19 +120,19 @@ def test_lateral_and_vertical_commands_move_the_right_way(command, axis, sign):
     assert all(abs(final.position[i] - START[i]) < 0.15 for i in others)
 
 
-def test_lockstep_drones_are_independent():
-    """Two drones in one client fly exactly as each does alone (no coupling, no collisions)."""
-    together = fly([(5, 0, 0), (0, -2, 1)], 1.0)[-1][1]
-    alone_a = fly([(5, 0, 0)], 1.0)[-1][1][0]
-    alone_b = fly([(0, -2, 1)], 1.0)[-1][1][0]
+def test_lockstep_drones_are_independent(backend):
+    """Two drones in one fleet fly exactly as each does alone (no coupling, no collisions)."""
+    together = fly(backend, [(5, 0, 0), (0, -2, 1)], 1.0)[-1][1]
+    alone_a = fly(backend, [(5, 0, 0)], 1.0)[-1][1][0]
+    alone_b = fly(backend, [(0, -2, 1)], 1.0)[-1][1][0]
     np.testing.assert_allclose(together[0].position, alone_a.position, atol=1e-9)
     np.testing.assert_allclose(together[1].position, alone_b.position, atol=1e-9)
 
 
-def test_long_random_flight_has_no_nan_and_bounded_attitude():
+def test_long_random_flight_has_no_nan_and_bounded_attitude(backend):
     rng = np.random.default_rng(0)
     hz = 240.0
-    with QuadrotorFleet(1, AF, hz) as fleet:
+    with new_fleet(backend, 1, hz) as fleet:
         fleet.reset(np.array([START]))
         states = fleet.states()
         max_tilt = 0.0

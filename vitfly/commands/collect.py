@@ -6,6 +6,7 @@ import argparse
 
 from vitfly.datamodules.schema import DEPTH_STORAGE
 from vitfly.sim.collect import CollectConfig, collect, load_collect_config
+from vitfly.sim.physics import PHYSICS_CHOICES
 
 _DEFAULTS = CollectConfig()
 
@@ -56,11 +57,18 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         f"{_DEFAULTS.log_x_range_m[0]:g} < x < {_DEFAULTS.log_x_range_m[1]:g} m, the original's window "
         "(YAML log_every_tick / log_x_range_m)",
     )
+    parser.add_argument(
+        "--physics",
+        choices=PHYSICS_CHOICES,
+        default=keep,
+        help="rigid-body physics back end, stored with the dataset: pybullet (the reference), native (numpy, same "
+        f"results to rounding) or auto, pybullet where installed (YAML, else {_DEFAULTS.physics})",
+    )
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
 
 
 def run(args: argparse.Namespace) -> int:
-    flags = ("trajectories", "speeds", "seed", "workers", "depth_compression", "log_every_tick")
+    flags = ("trajectories", "speeds", "seed", "workers", "depth_compression", "log_every_tick", "physics")
     overrides = {name: getattr(args, name, None) for name in flags}
     config = load_collect_config(getattr(args, "config", None), overrides)
     summary = collect(config, args.out, progress=not args.no_progress)

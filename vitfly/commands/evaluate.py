@@ -35,6 +35,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--threads", type=int, help="torch threads per worker")
     parser.add_argument("--backend", choices=BACKENDS,
                         help="inference back end of learned policies (onnxruntime-int8: int8 large products)")
+    parser.add_argument("--physics", choices=("auto", "pybullet", "native"),
+                        help="rigid-body physics back end, stated in every trial record (config default: auto, "
+                             "pybullet where installed, else native)")
     parser.add_argument("--timeout", type=float, dest="timeout_s", help="trial timeout, s (default: scales w/ speed)")
     parser.add_argument("--camera", nargs="+", metavar="FIELD=VALUE", type=_camera_setting,
                         help="camera settings (e.g. vertical_fov_deg=70, or preset=camera_config_yaml); "
@@ -73,8 +76,8 @@ def run(args: argparse.Namespace) -> int:
 
     overrides = {k: getattr(args, k) for k in ("policy", "arch", "name", "env", "preset", "speeds", "trials", "seed",
                                               "out", "num_envs", "workers", "shard", "device", "threads",
-                                              "backend", "timeout_s", "wandb_project", "control_hz", "depth_max_m",
-                                              "override_sensor")}
+                                              "backend", "physics", "timeout_s", "wandb_project", "control_hz",
+                                              "depth_max_m", "override_sensor")}
     overrides["camera"] = dict(args.camera) if args.camera else None
     overrides["gif"] = False if args.no_gif else None
     overrides["plots"] = False if args.no_plots else None

@@ -9,6 +9,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--config", default="configs/quickstart.yaml", help="pipeline YAML")
     parser.add_argument("--out", help="run directory (train/, eval/, pipeline.json)")
     parser.add_argument("--data", help="HDF5 dataset: used if complete, collected or completed if not")
+    parser.add_argument("--physics", choices=("auto", "pybullet", "native"),
+                        help="rigid-body physics back end of both collect and evaluate (default: the config's, auto: "
+                             "pybullet where installed, else native)")
     parser.add_argument("--wandb-project", help="also log the comparison and plots to this wandb project")
     parser.add_argument("--no-progress", action="store_true", help="no progress bars")
 
@@ -16,6 +19,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     from vitfly.workflows.pipeline import load_pipeline_config, run_pipeline
 
-    cfg = load_pipeline_config(args.config, {"out": args.out, "data": args.data, "wandb_project": args.wandb_project})
+    cfg = load_pipeline_config(args.config, {"out": args.out, "data": args.data, "wandb_project": args.wandb_project,
+                                             "physics": args.physics})
     run_pipeline(cfg, progress=not args.no_progress)
     return 0

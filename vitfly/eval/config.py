@@ -38,6 +38,7 @@ class SweepConfig:
     device: str = "cpu"  # learned policies' network: "cpu" or "cuda[:N]" (the simulator always steps on CPU)
     threads: int = 1  # torch threads per worker
     backend: str = "eager"  # learned policies: one of BACKENDS
+    physics: str = "auto"  # rigid-body back end: "pybullet", "native" or "auto" (made concrete by validate)
     timeout_s: float | None = None  # per trial; default scales with speed (sim's default)
     # the sensor flown with (vitfly.eval.sensor): None = the checkpoint's training sensor, else vitfly's defaults
     camera: dict | None = None  # CameraConfig fields, e.g. {vertical_fov_deg: 70}, or {preset: camera_config_yaml}
@@ -65,6 +66,9 @@ class SweepConfig:
             if value is not None and not value > 0:
                 raise VitflyError(f"{source}: field {name!r} must be a positive number, got {value}")
         parse_shard(self.shard, source)
+        from vitfly.sim.physics import resolve_physics
+
+        self.physics = resolve_physics(self.physics, f"{source}: field 'physics'")
         return self
 
     @property

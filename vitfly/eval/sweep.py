@@ -103,11 +103,13 @@ class TimedPolicy:
 
 def rollout_config(cfg: SweepConfig, record_depth: bool = False):
     from vitfly.eval.sensor import flight_sensor
+    from vitfly.sim.physics import resolve_physics
     from vitfly.sim.rollout import RolloutConfig, TaskConfig
 
     task = TaskConfig() if cfg.timeout_s is None else TaskConfig(timeout_s=cfg.timeout_s, timeout_speed_factor=0.0)
     camera, control_hz = flight_sensor(cfg)
-    return RolloutConfig(task=task, record_depth=record_depth, camera=camera, control_hz=control_hz)
+    return RolloutConfig(task=task, record_depth=record_depth, camera=camera, control_hz=control_hz,
+                         physics=resolve_physics(cfg.physics))
 
 
 def policy_source(cfg: SweepConfig) -> PolicySource:
@@ -124,6 +126,8 @@ def sweep_identity(cfg: SweepConfig, source: PolicySource | None = None) -> Swee
 def record_from_result(spec: TrialSpec, label: str, result, cfg: SweepConfig, processing_ms: float,
                        call_ms: float, batch_size: int, setup: Setup) -> records.TrialRecord:
     """One trial record; metrics are computed from the rounded path as stored."""
+    from vitfly.sim.physics import resolve_physics
+
     log, summary = result.log, result.summary
     # the end state (the physics step that ended the trial) is where a goal crossing shows: no tick reaches it
     path = records.round_path(log.time, log.position, log.velocity, log.command, log.contact,
@@ -139,6 +143,7 @@ def record_from_result(spec: TrialSpec, label: str, result, cfg: SweepConfig, pr
         "policy_source": cfg.policy,
         "arch": cfg.arch,
         "backend": cfg.backend if cfg.policy not in ("expert", "straight") else None,
+        "physics": resolve_physics(cfg.physics),  # the rigid-body back end that flew it
         "batch_size": batch_size,
         "batch_call_ms": call_ms,
         # the simulator's own counts at the physics rate (metrics use the per-tick path, recomputable)

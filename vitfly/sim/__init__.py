@@ -1,4 +1,4 @@
-"""pybullet simulator: scenes, quadrotor dynamics and controller, depth camera, expert, rollouts.
+"""Simulator: scenes, quadrotor physics back ends (pybullet, native) and controller, depth camera, expert, rollouts.
 
 Quick tour::
 
@@ -12,8 +12,9 @@ from vitfly.sim.camera import CAMERA_PRESETS, CameraConfig, DepthCamera
 from vitfly.sim.collision import ContactChecker, signed_distances
 from vitfly.sim.controller import ControllerGains, velocity_control
 from vitfly.sim.expert import ExpertConfig, ExpertObstacles, expert_command
+from vitfly.sim.physics import PHYSICS_BACKENDS, Fleet, make_fleet, resolve_physics
 from vitfly.sim.policies import BUILTIN_POLICIES, ExpertPolicy, StraightPolicy, make_builtin_policy
-from vitfly.sim.quadrotor import Airframe, DroneState, QuadrotorFleet
+from vitfly.sim.quadrotor import Airframe, DroneState
 from vitfly.sim.rollout import (
     EpisodeLog,
     EpisodeResult,
@@ -42,10 +43,11 @@ __all__ = [
     "ExpertConfig",
     "ExpertObstacles",
     "ExpertPolicy",
+    "Fleet",
     "Observation",
+    "PHYSICS_BACKENDS",
     "PRESETS",
     "Policy",
-    "QuadrotorFleet",
     "RolloutConfig",
     "Scene",
     "StraightPolicy",
@@ -53,7 +55,9 @@ __all__ = [
     "expert_command",
     "load_scene",
     "make_builtin_policy",
+    "make_fleet",
     "make_scene",
+    "resolve_physics",
     "run_episodes",
     "save_scene",
     "signed_distances",

@@ -43,6 +43,7 @@ import yaml
 from vitfly.datamodules.schema import TrajectoryRecord, TrajectoryWriter, check_depth_compression, encode_depth
 from vitfly.errors import VitflyError
 from vitfly.sim.camera import CameraConfig, expand_camera_preset
+from vitfly.sim.physics import resolve_physics
 from vitfly.sim.policies import ExpertPolicy
 from vitfly.sim.rollout import RolloutConfig, TaskConfig, run_episodes
 from vitfly.sim.scenes import ENVS, make_scene, scene_config
@@ -68,6 +69,7 @@ class CollectConfig:
     # or every tick of the flight with log_every_tick
     log_x_range_m: tuple[float, float] = (2.0, 60.0)
     log_every_tick: bool = False
+    physics: str = "auto"  # "pybullet", "native" or "auto"; stored concrete (resolve_physics) with the data
 
     def validate(self, source: str = "config") -> CollectConfig:
         if self.env not in ENVS:
@@ -84,6 +86,7 @@ class CollectConfig:
         x0, x1 = self.log_x_range_m
         if not x0 < x1:
             raise VitflyError(f"{source}: field log_x_range_m is [{x0}, {x1}]; expected min < max (m)")
+        resolve_physics(self.physics, f"{source}: field physics")
         try:
             self.rollout_config().physics_steps_per_tick  # noqa: B018 - validates the rates
             self.camera.validate("camera.")
@@ -106,6 +109,7 @@ class CollectConfig:
             task=TaskConfig(timeout_s=self.timeout_s, body_radius_m=self.body_radius_m),
             camera=self.camera,
             record_depth=True,
+            physics=self.physics,
         )
 
     def content_key(self) -> dict:
@@ -136,7 +140,8 @@ def load_collect_config(path: str | os.PathLike | None, overrides: dict[str, Any
     for key, value in (overrides or {}).items():
         if value is not None:
             data[key] = value
-    return _from_mapping(CollectConfig, data, source, "").validate(source)
+    config = _from_mapping(CollectConfig, data, source, "").validate(source)
+    return dataclasses.replace(config, physics=resolve_physics(config.physics, f"{source}: field physics"))
 
 
 def _from_mapping(cls, data: dict, source: str, prefix: str):
@@ -184,6 +189,12 @@ def _number(value, kind: type, source: str, name: str):
             raise VitflyError(f"{source}: field {name} must be a whole number, got {value!r}")
         return int(value)
     return float(value)
+
+
+def stored_collect_key(stored: dict | None) -> dict | None:
+    """A dataset's ``config.collect`` as :meth:`CollectConfig.content_key` writes it today (files from
+    before the physics field were all flown by pybullet)."""
+    return {**stored, "physics": stored.get("physics", "pybullet")} if isinstance(stored, dict) else stored
 
 
 def trajectory_spec(seed: int, index: int, speeds: tuple[float, float]) -> tuple[int, float]:
@@ -285,6 +296,7 @@ def collect(config: CollectConfig, out: str | os.PathLike, progress: bool = True
     """Fly ``config.trajectories`` expert trajectories into ``out`` (created, or resumed)."""
     out = Path(out)
     config.validate()
+    config = dataclasses.replace(config, physics=resolve_physics(config.physics))  # the dataset names it
     meta = {"made_by": "vitfly collect", "collect": config.content_key()}
     start = time.perf_counter()
     pool = _start_pool(config.workers)
@@ -315,7 +327,7 @@ def _collect_into(config: CollectConfig, out: Path, meta: dict, pool, progress: 
         camera=dataclasses.asdict(config.camera),
         control_hz=config.control_hz,
     ) as writer:
-        stored = writer.config.get("collect")
+        stored = stored_collect_key(writer.config.get("collect"))
         if stored is not None and stored != json.loads(json.dumps(meta["collect"])):
             raise VitflyError(
                 f"{out}: was collected with different settings (attribute config.collect); "

@@ -1,33 +1,22 @@
-"""Quadrotor airframe and its rigid-body dynamics in pybullet.
+"""Quadrotor airframe, its state as the simulator reports it, and attitude conversions.
 
-The airframe is the paper's (Flightmare "kingfisher"). pybullet integrates the rigid body (gravity,
-Newton-Euler); this module models what pybullet does not: first-order motor lag, the rotor thrust
-map, and the rotor forces and reaction torques, which it applies to the body every physics step.
-
-Several drones (one per lockstep scene) share one pybullet client. The drone bodies have no
-collision shapes, so they never touch each other or an obstacle (obstacles are not in pybullet at
-all: contact is detected geometrically by ``vitfly.sim.collision``), and one ``stepSimulation``
-advances every scene.
+The airframe is the paper's (Flightmare "kingfisher"). Its rigid-body motion is integrated by a
+physics back end (``vitfly.sim.physics``: pybullet, or vitfly's native integrator), which also
+models the motors and rotor forces the same way in both.
 
 Rotor order and layout (body frame: x forward, y left, z up):
 0 front-right (+x, -y), 1 back-left (-x, +y), 2 back-right (-x, -y), 3 front-left (+x, +y).
 Rotors 0 and 1 produce a reaction torque of +kappa * thrust about body z, rotors 2 and 3 -kappa * thrust.
-
-The per-step maths is written with Python floats rather than numpy: it runs 240+ times per
-simulated second per drone on 3-vectors, where numpy's per-call overhead would dominate.
 """
 
 from __future__ import annotations
 
-import contextlib
 import math
-import os
-import sys
+from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import NamedTuple
 
 import numpy as np
-import pybullet
 
 GRAVITY_MPS2 = 9.81
 
@@ -88,217 +77,15 @@ def quat_wxyz_to_matrix(q: np.ndarray) -> np.ndarray:
 
 
 class DroneState(NamedTuple):
-    """One drone's state. Tuples of floats, world frame unless said otherwise.
+    """One drone's state. Sequences of floats (tuples, or lists from the native back end), world frame
+    unless said otherwise.
 
     position (3,) m; quat (4,) (w, x, y, z) body-to-world; rotation (9,) body-to-world matrix,
     row-major; velocity (3,) m/s; body_rates (3,) rad/s in the body frame.
     """
 
-    position: tuple[float, float, float]
-    quat: tuple[float, float, float, float]
-    rotation: tuple[float, ...]
-    velocity: tuple[float, float, float]
-    body_rates: tuple[float, float, float]
-
-
-@contextlib.contextmanager
-def _quiet_stdout():
-    """pybullet's C code prints a banner on connect; keep it off our stdout (progress bars, pipes)."""
-    try:
-        fd = sys.stdout.fileno()
-    except (AttributeError, OSError, ValueError):
-        yield
-        return
-    sys.stdout.flush()
-    saved = os.dup(fd)
-    try:
-        with open(os.devnull, "w") as devnull:
-            os.dup2(devnull.fileno(), fd)
-            yield
-    finally:
-        os.dup2(saved, fd)
-        os.close(saved)
-
-
-# Connecting a pybullet client costs ~15 ms, a noticeable part of a short episode: closed fleets
-# leave their client here, emptied by resetSimulation (which rebuilds the dynamics world), for the
-# next fleet of this process. Every fleet sets gravity, time step and engine parameters itself.
-_IDLE_CLIENTS: list[tuple[int, int]] = []  # (process id, client id)
-_MAX_IDLE_CLIENTS = 4
-
-
-def _acquire_client() -> int:
-    pid = os.getpid()
-    while _IDLE_CLIENTS:
-        owner, cid = _IDLE_CLIENTS.pop()
-        if owner == pid and pybullet.isConnected(physicsClientId=cid):
-            return cid
-    with _quiet_stdout():
-        return pybullet.connect(pybullet.DIRECT)
-
-
-def _release_client(cid: int) -> None:
-    if len(_IDLE_CLIENTS) < _MAX_IDLE_CLIENTS and pybullet.isConnected(physicsClientId=cid):
-        pybullet.resetSimulation(physicsClientId=cid)
-        _IDLE_CLIENTS.append((os.getpid(), cid))
-    else:
-        pybullet.disconnect(physicsClientId=cid)
-
-
-class QuadrotorFleet:
-    """N quadrotors in one pybullet DIRECT client, stepped together.
-
-    Example::
-
-        fleet = QuadrotorFleet(num_drones=2, airframe=Airframe(), physics_hz=240)
-        fleet.reset(np.array([[0, 0, 3.5], [0, 0, 3.5]]))
-        hover = [fleet.airframe.hover_omega_radps] * 4
-        fleet.step([hover, hover])          # one 1/240 s step of both drones
-        fleet.states()[0].position
-    """
-
-    def __init__(self, num_drones: int, airframe: Airframe | None = None, physics_hz: float = 240.0):
-        self.airframe = airframe or Airframe()
-        self.num_drones = int(num_drones)
-        self.dt = 1.0 / float(physics_hz)
-        self._cid = _acquire_client()
-        pybullet.setGravity(0.0, 0.0, -GRAVITY_MPS2, physicsClientId=self._cid)
-        pybullet.setTimeStep(self.dt, physicsClientId=self._cid)
-        pybullet.setPhysicsEngineParameter(numSubSteps=1, deterministicOverlappingPairs=1, physicsClientId=self._cid)
-        self._bodies = [self._create_body() for _ in range(self.num_drones)]
-        self._motor_alpha = 1.0 - math.exp(-self.dt / self.airframe.motor_time_constant_s)
-        self._rotor_omega = [[0.0] * 4 for _ in range(self.num_drones)]
-        self._time_s = 0.0
-
-    def _create_body(self) -> int:
-        af = self.airframe
-        # no collision shape: drones never touch each other (contact with obstacles is geometric)
-        body = pybullet.createMultiBody(baseMass=af.mass_kg, baseCollisionShapeIndex=-1, physicsClientId=self._cid)
-        pybullet.changeDynamics(
-            body,
-            -1,
-            localInertiaDiagonal=list(af.inertia_kgm2),
-            linearDamping=0.0,
-            angularDamping=0.0,
-            physicsClientId=self._cid,
-        )
-        return body
-
-    @property
-    def time_s(self) -> float:
-        """Simulated time since the last reset (s)."""
-        return self._time_s
-
-    @property
-    def rotor_omega(self) -> np.ndarray:
-        """(N, 4) current rotor speeds (rad/s)."""
-        return np.array(self._rotor_omega)
-
-    def close(self) -> None:
-        if self._cid is not None:
-            _release_client(self._cid)
-            self._cid = None
-
-    def __enter__(self) -> QuadrotorFleet:
-        return self
-
-    def __exit__(self, *exc) -> None:
-        self.close()
-
-    def __del__(self) -> None:
-        with contextlib.suppress(Exception):
-            self.close()
-
-    def reset(self, positions: np.ndarray) -> None:
-        """Place drone i at ``positions[i]`` (m, world), level, heading +x, at rest, rotors at hover speed."""
-        positions = np.asarray(positions, dtype=np.float64).reshape(self.num_drones, 3)
-        for body, pos in zip(self._bodies, positions, strict=True):
-            pybullet.resetBasePositionAndOrientation(
-                body, pos.tolist(), [0.0, 0.0, 0.0, 1.0], physicsClientId=self._cid
-            )
-            pybullet.resetBaseVelocity(body, [0.0, 0.0, 0.0], [0.0, 0.0, 0.0], physicsClientId=self._cid)
-        hover = self.airframe.hover_omega_radps
-        self._rotor_omega = [[hover] * 4 for _ in range(self.num_drones)]
-        self._time_s = 0.0
-
-    def states(self) -> list[DroneState]:
-        """Current state of every drone (see :class:`DroneState`)."""
-        cid = self._cid
-        get_pose, get_velocity, to_matrix = (
-            pybullet.getBasePositionAndOrientation,
-            pybullet.getBaseVelocity,
-            pybullet.getMatrixFromQuaternion,
-        )
-        out = []
-        for body in self._bodies:
-            pos, q = get_pose(body, cid)
-            vel, w = get_velocity(body, cid)
-            r = to_matrix(q)
-            # body rates = R^T omega_world
-            rates = (
-                r[0] * w[0] + r[3] * w[1] + r[6] * w[2],
-                r[1] * w[0] + r[4] * w[1] + r[7] * w[2],
-                r[2] * w[0] + r[5] * w[1] + r[8] * w[2],
-            )
-            out.append(DroneState(pos, (q[3], q[0], q[1], q[2]), r, vel, rates))
-        return out
-
-    def step(self, rotor_omega_cmd, states: list[DroneState] | None = None) -> None:
-        """Advance all drones one physics step.
-
-        rotor_omega_cmd: N sequences of 4 commanded rotor speeds (rad/s), clipped to the motors'
-        range; the motors follow with a first-order lag. ``states`` is :meth:`states` at the start
-        of the step if the caller has it already (saves querying pybullet twice).
-        """
-        af, cid = self.airframe, self._cid
-        if states is None:
-            states = self.states()
-        k, kappa, alpha = af.thrust_coeff, af.torque_coeff, self._motor_alpha
-        lo, hi = af.omega_min_radps, af.omega_max_radps
-        ax, ay = af.arm_x_m, af.arm_y_m
-        apply_force, apply_torque = pybullet.applyExternalForce, pybullet.applyExternalTorque
-        world = pybullet.WORLD_FRAME
-        for body, omega, cmd, st in zip(self._bodies, self._rotor_omega, rotor_omega_cmd, states, strict=True):
-            # clip to [lo, hi] (as min(max(c, lo), hi)), unrolled because this runs at the physics rate and
-            # builtin min/max calls cost more; then the exact discretisation of the first-order lag
-            c0, c1, c2, c3 = cmd
-            c0, c1, c2, c3 = float(c0), float(c1), float(c2), float(c3)
-            o0, o1, o2, o3 = omega
-            if lo > c0:
-                c0 = lo
-            if hi < c0:
-                c0 = hi
-            if lo > c1:
-                c1 = lo
-            if hi < c1:
-                c1 = hi
-            if lo > c2:
-                c2 = lo
-            if hi < c2:
-                c2 = hi
-            if lo > c3:
-                c3 = lo
-            if hi < c3:
-                c3 = hi
-            o0 += alpha * (c0 - o0)
-            o1 += alpha * (c1 - o1)
-            o2 += alpha * (c2 - o2)
-            o3 += alpha * (c3 - o3)
-            omega[0], omega[1], omega[2], omega[3] = o0, o1, o2, o3
-            f0, f1, f2, f3 = k * o0 * o0, k * o1 * o1, k * o2 * o2, k * o3 * o3
-            thrust = f0 + f1 + f2 + f3
-            tau_x = ay * (-f0 + f1 - f2 + f3)
-            tau_y = ax * (-f0 + f1 + f2 - f3)
-            tau_z = kappa * (f0 + f1 - f2 - f3)
-            r = st.rotation
-            force = (r[2] * thrust, r[5] * thrust, r[8] * thrust)
-            torque = (
-                r[0] * tau_x + r[1] * tau_y + r[2] * tau_z,
-                r[3] * tau_x + r[4] * tau_y + r[5] * tau_z,
-                r[6] * tau_x + r[7] * tau_y + r[8] * tau_z,
-            )
-            # (the client id passed by position: keyword parsing costs more than these calls' work)
-            apply_force(body, -1, force, st.position, world, cid)
-            apply_torque(body, -1, torque, world, cid)
-        pybullet.stepSimulation(cid)
-        self._time_s += self.dt
+    position: Sequence[float]
+    quat: Sequence[float]
+    rotation: Sequence[float]
+    velocity: Sequence[float]
+    body_rates: Sequence[float]

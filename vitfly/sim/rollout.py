@@ -1,7 +1,7 @@
 """Lockstep episode engine: N scenes, one batched policy call per control tick.
 
-Each scene gets its own drone; all drones live in one pybullet client and one ``stepSimulation``
-advances them all. At every control tick (``control_hz``, 30 Hz by default, the camera's rate too)
+Each scene gets its own drone; all drones live in one physics back end (``vitfly.sim.physics``); one
+step advances them all. At every control tick (``control_hz``, 30 Hz by default, the camera's rate too)
 the engine renders the depth images, calls the policy ONCE with an :class:`Observation` of the
 whole batch, then runs ``physics_hz / control_hz`` physics steps, each with the cascaded
 controller tracking the commands, a contact test, and the goal and bounding-box checks. Finished
@@ -31,8 +31,9 @@ import numpy as np
 
 from vitfly.sim.camera import CameraConfig, DepthCamera
 from vitfly.sim.collision import ContactChecker
-from vitfly.sim.controller import ControllerGains, make_velocity_controller
-from vitfly.sim.quadrotor import Airframe, DroneState, QuadrotorFleet
+from vitfly.sim.controller import ControllerGains
+from vitfly.sim.physics import make_fleet
+from vitfly.sim.quadrotor import Airframe, DroneState
 from vitfly.sim.scenes import Scene
 
 END_REASONS = ("goal", "timeout", "out_of_bounds")
@@ -67,6 +68,7 @@ class RolloutConfig:
     airframe: Airframe = field(default_factory=Airframe)
     gains: ControllerGains = field(default_factory=ControllerGains)
     record_depth: bool = False  # keep every depth frame in the episode log
+    physics: str = "auto"  # back end: "pybullet", "native", or "auto" (pybullet where installed)
 
     @property
     def physics_steps_per_tick(self) -> int:
@@ -217,9 +219,8 @@ def run_episodes(
     speed_arr = np.array([e.speed for e in envs])
     results: list[EpisodeResult | None] = [None] * n
     hover = (0.0, 0.0, 0.0)
-    control = make_velocity_controller(cfg.airframe, cfg.gains)  # velocity_control, bit for bit
 
-    with QuadrotorFleet(n, cfg.airframe, cfg.physics_hz) as fleet:
+    with make_fleet(cfg.physics, n, cfg.airframe, cfg.physics_hz) as fleet:
         fleet.reset(np.tile(np.asarray(task.start, dtype=np.float64), (n, 1)))
         policy.reset(n)
         states = fleet.states()
@@ -241,9 +242,7 @@ def run_episodes(
             # 3. physics steps with the cascaded controller tracking the commands
             cmd_rows = [tuple(c) if a else hover for c, a in zip(commands.tolist(), active, strict=True)]
             for _ in range(substeps):
-                rotor_cmds = [control(c, st) for c, st in zip(cmd_rows, states, strict=True)]
-                fleet.step(rotor_cmds, states)
-                states = fleet.states()
+                states = fleet.track(cmd_rows, states, cfg.gains)  # cascaded controller + one physics step
                 time_s += dt
                 for i, e in enumerate(envs):
                     if e.end_reason is None:

@@ -57,6 +57,7 @@ class EvalStage:
     backend: str = "eager"
     timeout_s: float | None = None
     device: str = "cpu"  # torch device of learned policies
+    physics: str = "auto"  # rigid-body back end: pybullet, native or auto
 
 
 @dataclass
@@ -70,6 +71,7 @@ class PipelineConfig:
     baselines: list[str] = field(default_factory=lambda: ["expert", "straight"])
     threads: int = 0  # torch threads for training; 0 = all cores
     wandb_project: str | None = None
+    physics: str | None = None  # set: the physics back end of both collect and evaluate (pybullet, native, auto)
 
     @property
     def train_dir(self) -> Path:
@@ -88,6 +90,9 @@ def load_pipeline_config(path: str | os.PathLike | None, overrides: dict | None 
     train = dataclass_from_dict(TrainStage, data.pop("train", None) or {}, f"{source}: train")
     evaluate = dataclass_from_dict(EvalStage, data.pop("evaluate", None) or {}, f"{source}: evaluate")
     cfg = dataclasses.replace(dataclass_from_dict(PipelineConfig, data, source), train=train, evaluate=evaluate)
+    if cfg.physics is not None:  # one back end for both stages
+        cfg = dataclasses.replace(cfg, collect={**cfg.collect, "physics": cfg.physics},
+                                  evaluate=dataclasses.replace(cfg.evaluate, physics=cfg.physics))
     for name in cfg.baselines:
         if name not in ("expert", "straight"):
             raise VitflyError(f"{source}: field 'baselines' has {name!r}; expected expert and/or straight")
@@ -109,20 +114,20 @@ def sweep_config(e: EvalStage, out_dir: str | Path, policy: str, name: str | Non
     return SweepConfig(policy=policy, name=name, env=list(e.env), preset=e.preset, speeds=list(e.speeds),
                        trials=e.trials, seed=e.seed, out=str(out_dir), num_envs=e.num_envs, workers=e.workers,
                        threads=e.threads, backend=e.backend, timeout_s=e.timeout_s, gif=gif, plots=False,
-                       overwrite=True, device=e.device)
+                       overwrite=True, device=e.device, physics=e.physics)
 
 
 def stage_collect(collect_config: str | None, overrides: dict, data: str | Path, progress: bool = True) -> dict:
     """Fill ``data`` with expert trajectories up to the configured count (nothing to do if complete)."""
     from vitfly.datamodules.schema import open_trajectories
-    from vitfly.sim.collect import collect, load_collect_config
+    from vitfly.sim.collect import collect, load_collect_config, stored_collect_key
 
     collect_cfg = load_collect_config(collect_config, overrides)
     if Path(data).exists():
         # complete with these settings: only read it (a reader elsewhere in this process blocks writers)
         try:
             with open_trajectories(data, check_values=False) as f:
-                n, frames, stored = len(f), f.num_rows, f.config.get("collect")
+                n, frames, stored = len(f), f.num_rows, stored_collect_key(f.config.get("collect"))
         except VitflyError:  # e.g. empty: killed before its first trajectory; collect resumes it or says why not
             n = frames = 0
             stored = None
