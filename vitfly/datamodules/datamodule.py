@@ -21,6 +21,13 @@ from torch.utils.data import DataLoader, Sampler
 
 from vitfly.atomic import write_text
 from vitfly.datamodules.dataset import TrajectoryDataset, collate_trajectories, depth_to_unit_float
+from vitfly.datamodules.resident import (
+    ResidentTrajectories,
+    WindowIndexDataset,
+    collate_windows,
+    fits_on,
+    resident_bytes,
+)
 from vitfly.datamodules.schema import open_trajectories
 from vitfly.errors import VitflyError
 
@@ -116,6 +123,11 @@ class TrajectoryDataModule(L.LightningDataModule):
             state itself when it is False).
         test_path / predict_path: other datasets for ``vitfly test`` / ``vitfly predict``
             (default: the validation trajectories).
+        resident: keep the whole dataset (uint8 depth) on the training device and gather the train and
+            validation batches there; the loader then hands over only trajectory/window indices
+            (``vitfly.datamodules.resident``). ``auto``: on a CUDA device when the dataset takes at
+            most half its free memory; ``true``: on any device (on the CPU: no HDF5 reads, no loader
+            workers after the first load); ``false``: stream from the file.
     """
 
     def __init__(
@@ -133,8 +145,11 @@ class TrajectoryDataModule(L.LightningDataModule):
         use_state: bool = True,
         test_path: str | None = None,
         predict_path: str | None = None,
+        resident: bool | str = "auto",
     ):
         super().__init__()
+        if resident not in (True, False, "auto"):
+            raise VitflyError(f"resident: expected true, false or auto, got {resident!r}")
         if batch_size < 1:
             raise VitflyError(f"batch_size: expected a positive number of trajectories, got {batch_size}")
         self.save_hyperparameters()
@@ -151,6 +166,8 @@ class TrajectoryDataModule(L.LightningDataModule):
         self.use_state = use_state
         self.test_path = test_path
         self.predict_path = predict_path
+        self.resident = resident
+        self._resident: ResidentTrajectories | None = None
         self.train_indices: list[int] = []
         self.val_indices: list[int] = []
         self._datasets: dict[str, TrajectoryDataset] = {}
@@ -239,14 +256,49 @@ class TrajectoryDataModule(L.LightningDataModule):
         )
 
     def on_after_batch_transfer(self, batch: dict, dataloader_idx: int) -> dict:
+        if "depth" not in batch and "length" in batch:  # a resident batch: indices only, gathered here
+            batch = self._resident_store(batch["length"].device).gather(
+                batch["traj_index"], batch["start"], batch["length"]
+            )
         return depth_to_unit_float(batch)
 
+    # -- resident dataset (train/validation loaders only; test/predict may read other files) ----------
+
+    def _training_device(self) -> torch.device:
+        trainer = self.trainer
+        return trainer.strategy.root_device if trainer is not None else torch.device("cpu")
+
+    def use_resident(self, device: torch.device | None = None) -> bool:
+        """Whether train/validation batches are gathered from a device-resident copy of the dataset."""
+        if self.resident != "auto":
+            return bool(self.resident)
+        device = self._training_device() if device is None else device
+        if device.type != "cuda":
+            return False
+        with open_trajectories(self.data_path, check_values=False) as tf:
+            return fits_on(device, resident_bytes(tf.num_rows))
+
+    def _resident_store(self, device: torch.device) -> ResidentTrajectories:
+        if self._resident is None or self._resident.device != device:
+            self._resident = ResidentTrajectories(self.data_path, device)
+        return self._resident
+
+    def _train_val_loader(self, dataset: TrajectoryDataset, shuffle: bool) -> DataLoader:
+        loader = self._loader(dataset, shuffle)
+        if not self.use_resident():
+            return loader
+        # the same batches (same sampler) as indices only; nothing to read ahead from the file
+        sampler = loader.batch_sampler
+        if getattr(sampler, "prefetch", None) is not None:
+            sampler.prefetch = None
+        return DataLoader(WindowIndexDataset(dataset.windows), collate_fn=collate_windows, batch_sampler=sampler)
+
     def train_dataloader(self) -> DataLoader:
-        return self._loader(self._datasets["train"], shuffle=True)
+        return self._train_val_loader(self._datasets["train"], shuffle=True)
 
     def val_dataloader(self) -> DataLoader | list:
         val = self._datasets.get("val")
-        return [] if val is None else self._loader(val, shuffle=False)
+        return [] if val is None else self._train_val_loader(val, shuffle=False)
 
     def test_dataloader(self) -> DataLoader:
         dataset = self._datasets.get("test") or self._datasets.get("val")
