@@ -188,3 +188,46 @@ def test_compiled_encoder_matches_eager(name):
         got, fewer = net.encode(frames), net.encode(frames[:4])  # a second frame count: no error, same values
     torch.testing.assert_close(got, expected, rtol=1e-5, atol=1e-5)
     torch.testing.assert_close(fewer, expected[:4], rtol=1e-5, atol=1e-5)
+
+
+# -- CPU thread count ----------------------------------------------------------------------------
+
+
+def test_thread_tuner_keeps_the_measured_faster_count_and_measures_again(monkeypatch):
+    from vitfly.zoo import thread_tuner
+
+    clock = {"now": 0.0}
+    monkeypatch.setattr(thread_tuner.time, "perf_counter", lambda: clock["now"])
+    start = torch.get_num_threads()
+    seconds_per_frame = {2: 0.010, 1: 0.002}  # an oversubscribed machine: one thread 5x faster
+
+    def step(tuner, frames=100):
+        tuner.before_step()
+        clock["now"] += seconds_per_frame[torch.get_num_threads()] * frames
+        tuner.after_step(frames)
+        return torch.get_num_threads()
+
+    try:
+        tuner = thread_tuner.ThreadTuner(max_threads=2, probe_steps=3, probe_every=5)
+        # probing alternates 2, 1, 2, 1, 2, 1; then 1 thread for 5 steps; then it measures again
+        assert [step(tuner) for _ in range(11)] == [2, 1, 2, 1, 2, 1, 1, 1, 1, 1, 1]
+        seconds_per_frame.update({2: 0.001})  # the other load went away: two threads now win
+        assert [step(tuner, frames=50) for _ in range(6 + 3)] == [2, 1, 2, 1, 2, 1, 2, 2, 2]
+        tuner.restore()
+        assert torch.get_num_threads() == 2
+        assert not thread_tuner.ThreadTuner(max_threads=1).active
+    finally:
+        torch.set_num_threads(start)
+
+
+def test_cpu_threads_is_checked_and_a_number_is_applied(data_path, tmp_path):
+    with pytest.raises(VitflyError, match="model.cpu_threads: expected auto"):
+        create_policy("convnet", cpu_threads=0)
+    start = torch.get_num_threads()
+    try:
+        module = create_policy("convnet", cpu_threads=1, tbptt_steps=16)
+        trainer = quiet_trainer(tmp_path, max_epochs=1, limit_val_batches=0)
+        trainer.fit(module, datamodule=TrajectoryDataModule(data_path, batch_size=2, val_fraction=0.0))
+        assert torch.get_num_threads() == 1
+    finally:
+        torch.set_num_threads(start)

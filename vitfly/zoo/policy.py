@@ -24,6 +24,7 @@ from vitfly.zoo.base import DepthPolicyNet
 from vitfly.zoo.compiled import compile_encoder
 from vitfly.zoo.layers import state_vector
 from vitfly.zoo.registry import create_model, list_models
+from vitfly.zoo.thread_tuner import ThreadTuner
 
 CHUNK_KEYS = ("depth", "desired_speed", "quat", "velocity_cmd", "mask")
 MIN_SPEED_MPS = 1e-3  # guards the label division; real trajectories fly at >= 1 m/s
@@ -108,6 +109,10 @@ class PolicyModule(L.LightningModule):
         compile: ``torch.compile`` the network's image encoder (``vitfly.zoo.compile_encoder``; one
             warning and eager execution where the platform has no compiler). Weights and checkpoints
             are the same either way.
+        cpu_threads: intra-op threads for training on the CPU: ``auto`` measures steps with all threads
+            and with one and keeps the faster, re-measuring every 100 steps (``vitfly.zoo.thread_tuner``:
+            on a machine shared with other work one thread can be several times faster); a number fixes
+            it; None leaves torch's setting alone.
     """
 
     default_model = "convnet"
@@ -125,10 +130,16 @@ class PolicyModule(L.LightningModule):
         tbptt_steps: int | None = 32,
         gradient_clip_val: float | None = None,
         compile: bool = False,
+        cpu_threads: int | str | None = "auto",
     ) -> None:
         super().__init__()
         model = model or type(self).default_model  # resolved before save_hyperparameters records it
         model_kwargs = dict(model_kwargs or {})
+        threads_ok = cpu_threads in (None, "auto") or (
+            isinstance(cpu_threads, int) and not isinstance(cpu_threads, bool) and cpu_threads >= 1
+        )
+        if not threads_ok:
+            raise VitflyError(f"model.cpu_threads: expected auto, a thread count >= 1 or null, got {cpu_threads!r}")
         if tbptt_steps is not None and tbptt_steps < 1:
             raise VitflyError(f"model.tbptt_steps: expected a positive number of steps or null, got {tbptt_steps}")
         self.save_hyperparameters()
@@ -140,6 +151,8 @@ class PolicyModule(L.LightningModule):
             compile_encoder(self.net)
         self.tbptt_steps = tbptt_steps
         self.gradient_clip_val = gradient_clip_val
+        self.cpu_threads = cpu_threads
+        self._thread_tuner: ThreadTuner | None = None
         self.val_mse = MeanSquaredError()
         self.val_cos = CommandCosine()
         self.test_mse = MeanSquaredError()
@@ -204,12 +217,28 @@ class PolicyModule(L.LightningModule):
         prediction, hidden = self._forward_valid(chunk["depth"], speed, chunk["quat"], hidden, mask, all_valid)
         return masked_mse(prediction, normalised_target(chunk["velocity_cmd"], speed), mask), hidden
 
+    def on_fit_start(self) -> None:
+        if self.device.type != "cpu" or self.cpu_threads is None:
+            return
+        if self.cpu_threads == "auto":
+            self._thread_tuner = ThreadTuner()
+        else:
+            torch.set_num_threads(self.cpu_threads)
+
+    def on_fit_end(self) -> None:
+        if self._thread_tuner is not None:
+            self._thread_tuner.restore()
+            self._thread_tuner = None
+
     def training_step(self, batch: Mapping[str, torch.Tensor], batch_idx: int) -> torch.Tensor:
         opt = self.optimizers()
         hidden = None
         loss_sum = torch.zeros((), device=batch["mask"].device)
         n_valid = 0
+        tuner = self._thread_tuner
         for chunk in self.tbptt_chunks(batch):
+            if tuner is not None:
+                tuner.before_step()
             loss, hidden = self.chunk_loss(chunk, hidden)
             self._set_lr(opt, batch_idx)
             opt.zero_grad()
@@ -219,6 +248,8 @@ class PolicyModule(L.LightningModule):
             opt.step()
             hidden = detach_hidden(hidden)  # carried into the next chunk, cut from this chunk's graph
             n = chunk["n_valid"]
+            if tuner is not None:
+                tuner.after_step(n)
             loss_sum += loss.detach() * n
             n_valid += n
         mean_loss = loss_sum / max(n_valid, 1)
