@@ -56,11 +56,14 @@ def main() -> None:
     parser.add_argument("--rows", type=int, default=30)
     parser.add_argument("--sort", default="self_cpu_time_total")
     parser.add_argument("--shapes", action="store_true", help="one row per operator and input shapes")
+    parser.add_argument("--threads", type=int, default=None, help="intra-op threads (default: all)")
     args = parser.parse_args()
+    if args.threads:
+        torch.set_num_threads(args.threads)
     torch.manual_seed(0)
     module = create_policy(args.model, tbptt_steps=args.steps)
     module.train()
-    optimizer = torch.optim.Adam(module.net.parameters(), lr=1e-4)
+    optimizer = module.configure_optimizers()  # the module's own Adam (fused where the code has it)
     batch = synthetic_batch(args.batch, args.steps)
     autocast = args.precision == "bf16"
     one_step(module, optimizer, batch, autocast)  # warm-up: oneDNN primitives, allocator

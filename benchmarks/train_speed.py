@@ -57,10 +57,14 @@ def synthetic_batch(batch: int, steps: int, device):
     return {k: v.to(device) for k, v in data.items()}
 
 
-def measure_steps(model: str, mode: str, batch: int, steps: int, iters: int, warmup: int, device: str) -> dict:
+def measure_steps(
+    model: str, mode: str, batch: int, steps: int, iters: int, warmup: int, device: str, threads: int | None = None
+) -> dict:
     """frames/s of ``iters`` optimiser steps (one batch of one chunk each) after ``warmup`` steps."""
     import torch
 
+    if threads:
+        torch.set_num_threads(threads)
     from vitfly.zoo.policy import create_policy
 
     torch.manual_seed(0)
@@ -167,6 +171,7 @@ def main() -> None:
     parser.add_argument("--iters", type=int, default=3, help="timed optimiser steps per sample (median)")
     parser.add_argument("--warmup", type=int, default=1, help="untimed steps first (compilation happens here)")
     parser.add_argument("--device", default=None, help="cpu or cuda (default: cuda when present)")
+    parser.add_argument("--threads", type=int, default=None, help="CPU intra-op threads in step mode (default: all)")
     parser.add_argument("--fit", action="store_true", help="time `vitfly fit` with the shipped configs instead")
     parser.add_argument("--data", help="dataset for --fit")
     parser.add_argument("--fit-batches", type=int, default=4, help="training batches per --fit sample")
@@ -200,7 +205,7 @@ def main() -> None:
                         else:
                             spec = {"kind": "step", "model": model, "mode": mode, "batch": args.batch,
                                     "steps": args.steps, "iters": args.iters, "warmup": args.warmup,
-                                    "device": device}  # fmt: skip
+                                    "device": device, "threads": args.threads}  # fmt: skip
                         result = run_sample(sides[side], spec)
                         samples.append({"repeat": r, "model": model, "mode": mode, "side": side, **result})
                         print(f"  [{r}] {model} {mode} {side}: {result['fps']:,.1f} frames/s "
@@ -208,7 +213,8 @@ def main() -> None:
     if args.json:
         Path(args.json).write_text(json.dumps(samples, indent=1))
     what = "vitfly fit, shipped configs" if args.fit else f"{args.batch} x {args.steps} frames per optimiser step"
-    print(f"\n{device}, {torch.get_num_threads()} threads, {what}; medians of {args.repeats} samples (spread)")
+    threads = args.threads or torch.get_num_threads()
+    print(f"\n{device}, {threads} threads, {what}; medians of {args.repeats} samples (spread)")
     header = "| model | mode | frames/s | spread | warm-up s |"
     if "baseline" in sides:
         header += f" baseline {args.baseline_rev} frames/s | spread | new / baseline |"

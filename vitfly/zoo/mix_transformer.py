@@ -73,7 +73,14 @@ class EfficientSelfAttention(nn.Module):
         reduced = self.ln1(self.reduce(x, h, w))  # (N, L', C)
         kv = self.keyValueExtractor(reduced).reshape(n, -1, 2, self.num_heads, d).permute(2, 0, 3, 1, 4)
         q = self.query(x).reshape(n, length, self.num_heads, d).transpose(1, 2)  # (N, heads, L, d)
-        out = F.scaled_dot_product_attention(q, kv[0], kv[1])  # softmax(q k^T / sqrt(d)) v
+        k, v = kv[0], kv[1]
+        if torch.is_autocast_enabled(q.device.type):
+            # in fp32 even under bf16 autocast: 2 or 6 keys make it cheap, and the CPU's bf16 attention
+            # backward was 4-6x slower than the fp32 one (profiled, benchmarks/profile_train_step.py)
+            with torch.autocast(q.device.type, enabled=False):
+                out = F.scaled_dot_product_attention(q.float(), k.float(), v.float())
+        else:
+            out = F.scaled_dot_product_attention(q, k, v)  # softmax(q k^T / sqrt(d)) v
         return self.finalLayer(out.transpose(1, 2).reshape(n, length, c))
 
 
