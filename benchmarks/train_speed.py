@@ -217,7 +217,7 @@ def main() -> None:
     print(f"\n{device}, {threads} threads, {what}; medians of {args.repeats} samples (spread)")
     header = "| model | mode | frames/s | spread | warm-up s |"
     if "baseline" in sides:
-        header += f" baseline {args.baseline_rev} frames/s | spread | new / baseline |"
+        header += f" baseline {args.baseline_rev} frames/s | spread | new / baseline | paired ratios |"
     print(header)
     print("|" + "---|" * (header.count("|") - 1))
     for model in args.models:
@@ -229,7 +229,15 @@ def main() -> None:
             row = f"| {model} | {mode} | {med(new):,.0f} | {spread(new)} | {med(warm):.1f} |"
             if base:
                 ratio = statistics.median(new) / statistics.median(base)
-                row += f" {statistics.median(base):,.0f} | {spread(base)} | {ratio:.2f}x |"
+                # each repeat's new sample against the baseline sample taken next to it
+                by_repeat = {s["repeat"]: s["fps"] for s in samples if s["model"] == model and s["side"] == "baseline"}
+                paired = [
+                    s["fps"] / by_repeat[s["repeat"]]
+                    for s in samples
+                    if (s["model"], s["mode"], s["side"]) == (model, mode, "new") and s["repeat"] in by_repeat
+                ]
+                pairs = ", ".join(f"{p:.2f}x" for p in paired)
+                row += f" {statistics.median(base):,.0f} | {spread(base)} | {ratio:.2f}x | {pairs} |"
             print(row)
 
 
