@@ -26,6 +26,13 @@ from torch.utils.data import DataLoader, Sampler
 from vitfly.atomic import write_text
 from vitfly.datamodules.augment import check_mirror_prob, random_mirror
 from vitfly.datamodules.dataset import TrajectoryDataset, collate_trajectories, depth_to_unit_float
+from vitfly.datamodules.resident import (
+    ResidentTrajectories,
+    WindowIndexDataset,
+    collate_windows,
+    fits_on,
+    resident_bytes,
+)
 from vitfly.datamodules.schema import open_trajectories
 from vitfly.datamodules.split import (
     SPLIT_FILE,
@@ -159,6 +166,11 @@ class TrajectoryDataModule(L.LightningDataModule):
         mirror_prob: probability that a training trajectory (or window) is mirrored left-right in an
             epoch: depth flipped, the command's y and the attitude mirrored (``vitfly.datamodules.augment``).
             Training batches only; default 0.0 (off, the paper's training).
+        resident: keep the whole dataset (uint8 depth) on the training device and gather the train and
+            validation batches there; the loader then hands over only trajectory/window indices
+            (``vitfly.datamodules.resident``). ``auto``: on a CUDA device when the dataset takes at
+            most half its free memory; ``true``: on any device (on the CPU: no HDF5 reads, no loader
+            workers after the first load); ``false``: stream from the file.
     """
 
     def __init__(
@@ -177,8 +189,11 @@ class TrajectoryDataModule(L.LightningDataModule):
         test_path: str | None = None,
         predict_path: str | None = None,
         mirror_prob: float = 0.0,
+        resident: bool | str = "auto",
     ):
         super().__init__()
+        if resident not in (True, False, "auto"):
+            raise VitflyError(f"resident: expected true, false or auto, got {resident!r}")
         if batch_size < 1:
             raise VitflyError(f"batch_size: expected a positive number of trajectories, got {batch_size}")
         self.save_hyperparameters()
@@ -196,6 +211,8 @@ class TrajectoryDataModule(L.LightningDataModule):
         self.test_path = test_path
         self.predict_path = predict_path
         self.mirror_prob = check_mirror_prob(mirror_prob, "data.mirror_prob")
+        self.resident = resident
+        self._resident: ResidentTrajectories | None = None
         self.train_indices: list[int] = []
         self.val_indices: list[int] = []
         # the sensor the dataset was recorded with (plain values; the policy stores it in its checkpoints):
@@ -340,24 +357,57 @@ class TrajectoryDataModule(L.LightningDataModule):
             batch_sampler=sampler,
         )
 
-    def on_before_batch_transfer(self, batch: dict, dataloader_idx: int) -> dict:
-        # the one place augmentation happens: training batches only, on the host, before the device copy
+    def on_after_batch_transfer(self, batch: dict, dataloader_idx: int) -> dict:
+        if "depth" not in batch and "length" in batch:  # a resident batch: indices only, gathered here
+            batch = self._resident_store(batch["length"].device).gather(
+                batch["traj_index"], batch["start"], batch["length"]
+            )
+        # the one place augmentation happens: training batches only, once the batch holds its depth
+        # (streamed or gathered from the resident copy)
         trainer = self.trainer
         if self.mirror_prob > 0.0 and trainer is not None and trainer.training:
             batch = random_mirror(batch, self.mirror_prob, self.split_seed, trainer.current_epoch)
-        return batch
-
-    def on_after_batch_transfer(self, batch: dict, dataloader_idx: int) -> dict:
         return depth_to_unit_float(batch)
+
+    # -- resident dataset (train/validation loaders only; test/predict may read other files) ----------
+
+    def _training_device(self) -> torch.device:
+        trainer = self.trainer
+        return trainer.strategy.root_device if trainer is not None else torch.device("cpu")
+
+    def use_resident(self, device: torch.device | None = None) -> bool:
+        """Whether train/validation batches are gathered from a device-resident copy of the dataset."""
+        if self.resident != "auto":
+            return bool(self.resident)
+        device = self._training_device() if device is None else device
+        if device.type != "cuda":
+            return False
+        with open_trajectories(self.data_path, check_values=False) as tf:
+            return fits_on(device, resident_bytes(tf.num_rows))
+
+    def _resident_store(self, device: torch.device) -> ResidentTrajectories:
+        if self._resident is None or self._resident.device != device:
+            self._resident = ResidentTrajectories(self.data_path, device)
+        return self._resident
+
+    def _train_val_loader(self, dataset: TrajectoryDataset, shuffle: bool) -> DataLoader:
+        loader = self._loader(dataset, shuffle)
+        if not self.use_resident():
+            return loader
+        # the same batches (same sampler) as indices only; nothing to read ahead from the file
+        sampler = loader.batch_sampler
+        if getattr(sampler, "prefetch", None) is not None:
+            sampler.prefetch = None
+        return DataLoader(WindowIndexDataset(dataset.windows), collate_fn=collate_windows, batch_sampler=sampler)
 
     def train_dataloader(self) -> DataLoader:
         self._save_split_once()
-        return self._loader(self._datasets["train"], shuffle=True)
+        return self._train_val_loader(self._datasets["train"], shuffle=True)
 
     def val_dataloader(self) -> DataLoader | list:
         self._save_split_once()
         val = self._datasets.get("val")
-        return [] if val is None else self._loader(val, shuffle=False)
+        return [] if val is None else self._train_val_loader(val, shuffle=False)
 
     def test_dataloader(self) -> DataLoader:
         self._save_split_once()

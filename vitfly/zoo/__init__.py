@@ -3,6 +3,7 @@
 # the architecture modules register their builders on import
 from vitfly.zoo import convnet, lstmnet, resnet18, unet_lstm, vit, vit_lstm  # noqa: F401
 from vitfly.zoo.checkpoint import load_network, save_checkpoint
+from vitfly.zoo.compiled import compile_encoder
 from vitfly.zoo.legacy import load_legacy_checkpoint
 from vitfly.zoo.pretrained import load_pretrained, save_pretrained
 from vitfly.zoo.registry import create_model, list_models, register_model
@@ -18,6 +19,7 @@ def __getattr__(name: str):  # PolicyModule / create_policy load lazily: they im
 
 __all__ = [
     "PolicyModule",
+    "compile_encoder",
     "create_policy",
     "create_model",
     "list_models",

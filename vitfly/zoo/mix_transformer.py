@@ -98,7 +98,13 @@ class EfficientSelfAttention(nn.Module):
     def forward(self, x: torch.Tensor, h: int, w: int) -> torch.Tensor:
         n, length, c = x.shape
         q, k, v = self.project(x, h, w)
-        out = F.scaled_dot_product_attention(q, k, v)  # softmax(q k^T / sqrt(d)) v
+        if torch.is_autocast_enabled(q.device.type):
+            # in fp32 even under bf16 autocast: 2 or 6 keys make it cheap, and the CPU's bf16 attention
+            # backward was 4-6x slower than the fp32 one (profiled, benchmarks/profile_train_step.py)
+            with torch.autocast(q.device.type, enabled=False):
+                out = F.scaled_dot_product_attention(q.float(), k.float(), v.float())
+        else:
+            out = F.scaled_dot_product_attention(q, k, v)  # softmax(q k^T / sqrt(d)) v
         return self.finalLayer(out.transpose(1, 2).reshape(n, length, c))
 
 

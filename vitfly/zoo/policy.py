@@ -23,14 +23,17 @@ from torchmetrics import MeanSquaredError, Metric, R2Score
 from vitfly.errors import VitflyError
 from vitfly.zoo.base import DepthPolicyNet
 from vitfly.zoo.checkpoint import SENSOR_KEY, check_sensor, read_sensor, sensor_conflicts
+from vitfly.zoo.compiled import compile_encoder
 from vitfly.zoo.layers import state_vector
 from vitfly.zoo.registry import create_model, list_models
+from vitfly.zoo.thread_tuner import ThreadTuner
 
 CHUNK_KEYS = ("depth", "desired_speed", "quat", "velocity_cmd", "mask")
 # per-axis R^2 of the normalised command, logged as <prefix>/r2_<name>: the axes that carry the avoidance
 # (a constant command scores about 0 here, however well it does on MSE and cosine)
 R2_AXES = {"lateral": 1, "vertical": 2}  # world y (left), world z (up)
 MIN_SPEED_MPS = 1e-3  # guards the label division; real trajectories fly at >= 1 m/s
+FUSED_ADAM_DEVICES = ("cpu", "cuda")
 
 
 def normalised_target(velocity_cmd: torch.Tensor, desired_speed: torch.Tensor) -> torch.Tensor:
@@ -108,6 +111,13 @@ class PolicyModule(L.LightningModule):
         tbptt_steps: time steps per optimiser step; each batch is walked in chunks of this length with
             the recurrent state carried across chunks, detached (None: the whole batch at once).
         gradient_clip_val: clip the gradient norm to this value before each step (None: no clipping).
+        compile: ``torch.compile`` the network's image encoder (``vitfly.zoo.compile_encoder``; one
+            warning and eager execution where the platform has no compiler). Weights and checkpoints
+            are the same either way.
+        cpu_threads: intra-op threads for training on the CPU: ``auto`` measures steps with all threads
+            and with one and keeps the faster, re-measuring every 100 steps (``vitfly.zoo.thread_tuner``:
+            on a machine shared with other work one thread can be several times faster); a number fixes
+            it; None leaves torch's setting alone.
     """
 
     default_model = "convnet"
@@ -124,10 +134,17 @@ class PolicyModule(L.LightningModule):
         weight_decay: float = 0.0,
         tbptt_steps: int | None = 32,
         gradient_clip_val: float | None = None,
+        compile: bool = False,
+        cpu_threads: int | str | None = "auto",
     ) -> None:
         super().__init__()
         model = model or type(self).default_model  # resolved before save_hyperparameters records it
         model_kwargs = dict(model_kwargs or {})
+        threads_ok = cpu_threads in (None, "auto") or (
+            isinstance(cpu_threads, int) and not isinstance(cpu_threads, bool) and cpu_threads >= 1
+        )
+        if not threads_ok:
+            raise VitflyError(f"model.cpu_threads: expected auto, a thread count >= 1 or null, got {cpu_threads!r}")
         if tbptt_steps is not None and tbptt_steps < 1:
             raise VitflyError(f"model.tbptt_steps: expected a positive number of steps or null, got {tbptt_steps}")
         self.save_hyperparameters()
@@ -135,8 +152,12 @@ class PolicyModule(L.LightningModule):
         self.hparams["model"], self.hparams["model_kwargs"] = model, model_kwargs
         self.automatic_optimization = False
         self.net: nn.Module = create_model(model, use_state=use_state, **model_kwargs)
+        if compile:
+            compile_encoder(self.net)
         self.tbptt_steps = tbptt_steps
         self.gradient_clip_val = gradient_clip_val
+        self.cpu_threads = cpu_threads
+        self._thread_tuner: ThreadTuner | None = None
         self.val_mse = MeanSquaredError()
         self.val_cos = CommandCosine()
         self.test_mse = MeanSquaredError()
@@ -154,14 +175,16 @@ class PolicyModule(L.LightningModule):
         """The network's call contract: (B, T, ...) inputs -> (velocity / desired speed (B, T, 3), hidden)."""
         return self.net(depth, desired_speed, quat, hidden)
 
-    def _forward_valid(self, depth, desired_speed, quat, hidden, mask):
+    def _forward_valid(self, depth, desired_speed, quat, hidden, mask, all_valid: bool | None = None):
         """Forward in which padded frames never enter the image encoder (nor its batch-norm statistics).
 
         Zoo networks (DepthPolicyNet with the stock forward) encode only the valid frames; padded
         steps get zero features, which only the masked-out outputs after them can see.
         """
         net = self.net
-        if mask.all() or not isinstance(net, DepthPolicyNet) or type(net).forward is not DepthPolicyNet.forward:
+        if all_valid is None:
+            all_valid = bool(mask.all())
+        if all_valid or not isinstance(net, DepthPolicyNet) or type(net).forward is not DepthPolicyNet.forward:
             return net(depth, desired_speed, quat, hidden)
         b, t = mask.shape
         valid = net.encode(depth[mask])
@@ -171,23 +194,34 @@ class PolicyModule(L.LightningModule):
 
     # -- training: truncated BPTT with manual optimisation -----------------------------------------
 
-    def tbptt_chunks(self, batch: Mapping[str, torch.Tensor]) -> Iterator[dict[str, torch.Tensor]]:
+    def tbptt_chunks(self, batch: Mapping[str, torch.Tensor]) -> Iterator[dict[str, Any]]:
         """The batch cut along time into chunks of ``tbptt_steps`` (``.split(k, dim=1)``), each trimmed
-        of trailing all-padding steps; stops at the first chunk without a valid step."""
+        of trailing all-padding steps; stops at the first chunk without a valid step.
+
+        Chunk bounds and valid-frame counts come from one host copy of the (B, T) mask, so the loop
+        over chunks waits for the device once per batch, not several times per chunk. Each chunk also
+        carries ``n_valid`` (its number of valid steps, a Python int) and ``all_valid``.
+        """
         mask = batch["mask"]
         k = self.tbptt_steps or mask.shape[1]
-        pieces = {key: batch[key].split(k, dim=1) for key in CHUNK_KEYS}
-        for i in range(len(pieces["mask"])):
-            valid_steps = pieces["mask"][i].any(dim=0)
-            if not valid_steps.any():  # trajectories are padded at the end: nothing valid follows
-                return
-            steps = int(valid_steps.nonzero().max()) + 1
-            yield {key: pieces[key][i][:, :steps] for key in CHUNK_KEYS}
+        host_mask = mask.cpu()
+        valid_steps = host_mask.any(dim=0)
+        if not bool(valid_steps.any()):
+            return
+        end = int(valid_steps.nonzero().max()) + 1  # trajectories are padded at the end: nothing valid follows
+        for lo in range(0, end, k):
+            steps = min(k, end - lo)
+            piece = host_mask[:, lo : lo + steps]
+            chunk = {key: batch[key][:, lo : lo + steps] for key in CHUNK_KEYS}
+            chunk["n_valid"] = int(piece.sum())
+            chunk["all_valid"] = chunk["n_valid"] == piece.numel()
+            yield chunk
 
     def chunk_loss(self, chunk: Mapping[str, torch.Tensor], hidden: Any = None) -> tuple[torch.Tensor, Any]:
         """Paper eq. 1 on one chunk, starting from recurrent state ``hidden``: (loss, state after the chunk)."""
         mask, speed = chunk["mask"], chunk["desired_speed"]
-        prediction, hidden = self._forward_valid(chunk["depth"], speed, chunk["quat"], hidden, mask)
+        all_valid = chunk.get("all_valid")
+        prediction, hidden = self._forward_valid(chunk["depth"], speed, chunk["quat"], hidden, mask, all_valid)
         return masked_mse(prediction, normalised_target(chunk["velocity_cmd"], speed), mask), hidden
 
     def rank_chunks(self, batch: Mapping[str, torch.Tensor]) -> Iterator[tuple[dict[str, torch.Tensor] | None, float]]:
@@ -218,12 +252,28 @@ class PolicyModule(L.LightningModule):
         joins the other ranks' gradient all-reduce."""
         return sum(p.sum() for p in self.parameters() if p.requires_grad) * 0.0
 
+    def on_fit_start(self) -> None:
+        if self.device.type != "cpu" or self.cpu_threads is None:
+            return
+        if self.cpu_threads == "auto":
+            self._thread_tuner = ThreadTuner()
+        else:
+            torch.set_num_threads(self.cpu_threads)
+
+    def on_fit_end(self) -> None:
+        if self._thread_tuner is not None:
+            self._thread_tuner.restore()
+            self._thread_tuner = None
+
     def training_step(self, batch: Mapping[str, torch.Tensor], batch_idx: int) -> torch.Tensor:
         opt = self.optimizers()
         hidden = None
         loss_sum = torch.zeros((), device=batch["mask"].device)
         n_valid = 0
+        tuner = self._thread_tuner
         for chunk, weight in self.rank_chunks(batch):
+            if tuner is not None:
+                tuner.before_step()
             if chunk is None:  # DDP: this rank's batch has ended, another rank's has not
                 loss = self._zero_loss()
             else:
@@ -237,7 +287,9 @@ class PolicyModule(L.LightningModule):
             if chunk is None:
                 continue
             hidden = detach_hidden(hidden)  # carried into the next chunk, cut from this chunk's graph
-            n = int(chunk["mask"].sum())
+            n = chunk["n_valid"]
+            if tuner is not None:
+                tuner.after_step(n)
             loss_sum += loss.detach() * n
             n_valid += n
         mean_loss = loss_sum / max(n_valid, 1)
@@ -287,7 +339,11 @@ class PolicyModule(L.LightningModule):
 
     def configure_optimizers(self):
         hp = self.hparams
-        return torch.optim.Adam(self.net.parameters(), lr=hp.lr * hp.warmup_start_factor, weight_decay=hp.weight_decay)
+        params = list(self.net.parameters())
+        # one fused kernel for all parameters instead of ~10 small ops per parameter tensor (the profiled
+        # CPU step spent ~5 % in Adam's per-tensor ops); same update rule
+        fused = all(p.device.type in FUSED_ADAM_DEVICES for p in params) or None
+        return torch.optim.Adam(params, lr=hp.lr * hp.warmup_start_factor, weight_decay=hp.weight_decay, fused=fused)
 
     # -- validation / test / predict ------------------------------------------------------------
 

@@ -3,6 +3,11 @@
 ``run_lstm`` is ``nn.LSTM`` for training and export; at inference (eval mode, no autograd) it runs
 the same cell equations as plain matrix products, which avoids the per-call setup cost of the fused
 LSTM kernel at batch 1 (milliseconds on CPU) and matches it to float rounding.
+
+On the CPU the training recurrence (forward and backward) runs on one thread: each of its T steps is a
+product of a few thousand numbers, far too small to split, and with two threads every step waits at an
+OpenMP barrier (profiled: 1 thread 25-50 ms, 2 threads 40 ms to 4 s for ViT+LSTM's LSTM on a
+(4, 64) batch, the slow end whenever another process holds a core).
 """
 
 from __future__ import annotations
@@ -40,9 +45,31 @@ def run_lstm(lstm: nn.LSTM, x: torch.Tensor, hidden: Hidden | None) -> tuple[tor
     elif not is_tracing():
         check_hidden(lstm, hidden, b)
     if lstm.training or torch.is_grad_enabled() or is_tracing():
+        if x.device.type == "cpu" and torch.get_num_threads() > 1 and not is_tracing():
+            return _lstm_one_thread(lstm, x, hidden)
         out, (h, c) = lstm(x, tuple(hidden))
         return out, (h, c)
     return lstm_inference(lstm, x, hidden)
+
+
+def _set_threads(threads: int) -> None:
+    if torch.get_num_threads() != threads:
+        torch.set_num_threads(threads)
+
+
+def _lstm_one_thread(lstm: nn.LSTM, x: torch.Tensor, hidden: Hidden) -> tuple[torch.Tensor, Hidden]:
+    """``lstm(x, hidden)`` with one intra-op thread, its backward too (the CPU backward runs on this thread)."""
+    threads = torch.get_num_threads()
+    _set_threads(1)
+    try:
+        out, (h, c) = lstm(x, tuple(hidden))
+    finally:
+        _set_threads(threads)
+    if out.requires_grad and x.requires_grad:
+        # the gradient reaching the LSTM's output starts its backward; the one reaching its input ends it
+        out.register_hook(lambda grad: _set_threads(1))
+        x.register_hook(lambda grad: _set_threads(threads))
+    return out, (h, c)
 
 
 def lstm_inference(
