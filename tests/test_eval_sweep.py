@@ -291,3 +291,17 @@ def test_int8_backend_flies_and_cuda_absent_is_one_line(tmp_path, capsys):
     err = capsys.readouterr().err.strip().splitlines()
     assert err == ["vitfly: error: --device cuda: CUDA is not available on this machine (use --device cpu)"]
     assert not (tmp_path / "gpu").exists()
+
+
+def test_compiled_backend_wraps_the_encoder(tmp_path):
+    # --backend compiled: the same network with its encoder behind torch.compile (compiled lazily, on the first
+    # call, so building the policy here compiles nothing); eager outputs are the compile path's reference
+    from vitfly.eval.policy_source import PolicySource
+    from vitfly.zoo import create_model, save_checkpoint
+    from vitfly.zoo.compiled import _CompiledOrEager
+
+    ckpt = tmp_path / "c.ckpt"
+    save_checkpoint(create_model("convnet"), "convnet", True, ckpt)
+    policy = PolicySource(str(ckpt), backend="compiled").build()
+    assert isinstance(policy.net.encode, _CompiledOrEager)
+    assert not isinstance(PolicySource(str(ckpt)).build().net.encode, _CompiledOrEager)

@@ -204,7 +204,8 @@ def test_validate_takes_the_network_from_a_no_state_checkpoint(data_path, tmp_pa
 
     ckpt = train_policy(data_path, "lstmnet", tmp_path / "nostate", use_state=False, max_epochs=1, batch_size=2,
                         progress_bar=False)  # fmt: skip
-    args = fit_args(data_path, tmp_path / "val", "--ckpt_path", str(ckpt))  # the config: convnet WITH state
+    # the config: convnet WITH state; fp32 so the loss compares with the direct fp32 computation to 1e-5
+    args = fit_args(data_path, tmp_path / "val", "--ckpt_path", str(ckpt), "--trainer.precision", "32-true")
     args[0] = "validate"
     cli = build_cli(args)
     assert f"{ckpt} holds lstmnet (use_state=False" in capsys.readouterr().err

@@ -34,7 +34,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                                          "(the simulator steps on CPU processes either way)")
     parser.add_argument("--threads", type=int, help="torch threads per worker")
     parser.add_argument("--backend", choices=BACKENDS,
-                        help="inference back end of learned policies (onnxruntime-int8: int8 large products)")
+                        help="inference back end of learned policies (compiled: eager with the image encoder "
+                             "through torch.compile, compiled on the first call; onnxruntime-int8: int8 products)")
     parser.add_argument("--physics", choices=("auto", "pybullet", "native"),
                         help="rigid-body physics back end, stated in every trial record (config default: auto, "
                              "pybullet where installed, else native)")

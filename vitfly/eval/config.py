@@ -15,7 +15,7 @@ from vitfly.errors import VitflyError
 
 ENVS = ("spheres", "trees", "window")
 # inference back ends of learned policies: eager PyTorch, ONNX Runtime float32, ONNX Runtime with int8 products
-BACKENDS = ("eager", "onnxruntime", "onnxruntime-int8")
+BACKENDS = ("eager", "compiled", "onnxruntime", "onnxruntime-int8")  # compiled: eager with torch.compile
 
 
 @dataclass

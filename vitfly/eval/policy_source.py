@@ -19,7 +19,7 @@ BUILTIN = ("expert", "straight")
 class PolicySource:
     spec: str  # "expert", "straight", "pretrained:NAME" or a checkpoint path
     arch: str | None = None  # architecture of an original-project checkpoint
-    backend: str = "eager"  # "eager", "onnxruntime" or "onnxruntime-int8" (learned policies)
+    backend: str = "eager"  # "eager", "compiled", "onnxruntime" or "onnxruntime-int8" (learned policies)
     device: str = "cpu"  # the learned policy's network: "cpu" or "cuda[:N]"
     threads: int = 1  # ONNX Runtime intra-op threads
 
@@ -92,6 +92,10 @@ class PolicySource:
             # exported on the fly, checked against eager; ONNX Runtime takes host arrays whatever its provider
             step_fn = OnnxPolicyRunner(net, threads=self.threads, providers=providers, precision=precision)
             return LearnedPolicy(net, device="cpu", step_fn=step_fn)
+        if self.backend == "compiled":  # encoder via torch.compile (without a compiler: one warning, eager)
+            from vitfly.zoo import compile_encoder
+
+            compile_encoder(net)
         return LearnedPolicy(net, device=self.device)
 
 
