@@ -41,9 +41,9 @@ def test_laptop_budget_merges_recipe_overrides_and_per_model(monkeypatch):
     assert (t.model, t.use_state, t.max_epochs, t.batch_size, t.val_fraction, t.seed) == ("vit_lstm", False, 8, 4,
                                                                                         0.2, 0)
     assert t.policy_kwargs == {"lr": 1e-4, "warmup_epochs": 1, "warmup_start_factor": 0.1, "lr_decay": 1.0,
-                               "tbptt_steps": 64, "gradient_clip_val": None}
-    assert t.data_kwargs == {"max_length": None, "num_workers": 1, "cache_mb": 1024}
-    assert t.trainer_kwargs == {"log_every_n_steps": 10, "max_time": "00:01:00:00"}
+                               "tbptt_steps": 64, "gradient_clip_val": None, "compile": False, "cpu_threads": "auto"}
+    assert t.data_kwargs == {"max_length": None, "num_workers": 1, "cache_mb": 1024, "resident": True}
+    assert t.trainer_kwargs == {"log_every_n_steps": 10, "precision": "bf16-mixed", "max_time": "00:01:00:00"}
     # every run of the laptop preset is capped below 2 hours
     for m in cfg.train.models:
         h, mi, s = map(int, train_stage(cfg, m, True).trainer_kwargs["max_time"].split(":")[1:])
