@@ -94,13 +94,6 @@ def strip_figure(
     return fig
 
 
-def save_png(fig: Figure, path: str | Path, dpi: int = 110) -> Path:
-    path = Path(path)
-    with atomic_path(path) as tmp:
-        fig.savefig(tmp, dpi=dpi, format="png")
-    return path
-
-
 def panel_image(
     depth: np.ndarray,
     m: np.ndarray | None,

@@ -27,13 +27,13 @@ import numpy as np
 
 from vitfly.atomic import write_text
 from vitfly.errors import VitflyError
-from vitfly.eval.explain.figures import MapRow, save_png, strip_figure, write_gif
+from vitfly.eval.explain.figures import MapRow, strip_figure, write_gif
 from vitfly.eval.explain.frames import TrialFrames
 from vitfly.eval.explain.map_metrics import map_metrics
 from vitfly.eval.explain.maps import METHODS, SequenceMaps, explain_sequence
 from vitfly.eval.explain.policies import ExplainedPolicy, file_stem
 from vitfly.eval.learned_policy import deploy_command
-from vitfly.sim.visualize import body_command
+from vitfly.sim.visualize import body_command, save_figure
 
 CSV_COLUMNS = ("model", "map", "random_weights", "ticks", "consistency", "consistency_pairs", "edge_mass_share",
                "edge_area_share", "edge_lift", "edge_ticks")
@@ -153,7 +153,7 @@ def explain_trial(
         rows = [MapRow(f"{m.policy.label}\n{kind}", maps, m.command_body) for kind, maps in m.maps.maps.items()]
         fig = strip_figure(f.depth, rows, chosen, f.time, f.desired_speed, f.edges, reference,
                            title=f"{m.policy.label} ({m.policy.arch}) — {f.title}")
-        result.files[f"strip_{stem}"] = save_png(fig, out / f"strip_{stem}.png")
+        result.files[f"strip_{stem}"] = save_figure(fig, out / f"strip_{stem}.png")
         panels = [MapRow(f"{m.policy.label} {kind}", m.maps.maps[kind], m.command_body)
                   for kind in GIF_MAPS if kind in m.maps.maps]
         if gif:
@@ -164,7 +164,7 @@ def explain_trial(
         side_panels += [MapRow(f"{m.policy.label}", m.maps.maps["command"], m.command_body)] \
             if "command" in m.maps.maps else panels[:1]  # fmt: skip
     fig = strip_figure(f.depth, side_rows, chosen, f.time, f.desired_speed, f.edges, reference, title=f.title)
-    result.files["side_by_side"] = save_png(fig, out / "side_by_side.png")
+    result.files["side_by_side"] = save_figure(fig, out / "side_by_side.png")
     if gif and len(models) > 1:
         result.files["side_by_side_gif"] = write_gif(out / "side_by_side.gif", f.depth, side_panels, f.time,
                                                      f.desired_speed, f.edges, gif_stride, scale=3)
