@@ -13,7 +13,15 @@ from vitfly.datamodules.datamodule import TrajectoryDataModule
 from vitfly.datamodules.dataset import TrajectoryDataset, collate_trajectories
 from vitfly.zoo import create_model, register_model
 from vitfly.zoo.base import DepthPolicyNet
-from vitfly.zoo.policy import CommandCosine, PolicyModule, create_policy, lr_factor, masked_mse, policy_class
+from vitfly.zoo.policy import (
+    CommandCosine,
+    PolicyModule,
+    create_policy,
+    lr_factor,
+    masked_mse,
+    policy_class,
+    weighted_masked_mse,
+)
 
 torch.set_num_threads(1)
 
@@ -190,6 +198,35 @@ def test_masked_mse_ignores_masked_rows():
     target = torch.zeros(1, 2, 3)
     mask = torch.tensor([[True, False]])
     assert float(masked_mse(pred, target, mask)) == 1.0
+
+
+def test_avoidance_weighting_by_hand():
+    # two valid steps: a straight label (weight 1) and a swerve with |(y, z)| = |(0.3, 0.4)| = 0.5
+    # (weight 1 + 4 * 0.5 = 3); the third step is padding
+    target = torch.tensor([[[1.0, 0.0, 0.0], [0.8, 0.3, 0.4], [5.0, 5.0, 5.0]]])
+    pred = torch.tensor([[[1.0, 0.0, 0.3], [0.8, 0.0, 0.4], [0.0, 0.0, 0.0]]])
+    mask = torch.tensor([[True, True, False]])
+    # per-step mean squared errors: 0.09 / 3 = 0.03 and 0.09 / 3 = 0.03 -> any weighting gives 0.03
+    assert float(weighted_masked_mse(pred, target, mask, 4.0)) == pytest.approx(0.03)
+    pred[0, 1] = torch.tensor([0.8, 0.0, 0.0])  # the swerve's error grows to (0.09 + 0.16) / 3
+    expected = (1 * 0.03 + 3 * 0.25 / 3) / (1 + 3)
+    assert float(weighted_masked_mse(pred, target, mask, 4.0)) == pytest.approx(expected)
+    assert float(weighted_masked_mse(pred, target, mask, 0.0)) == pytest.approx((0.03 + 0.25 / 3) / 2)
+    with pytest.raises(Exception, match="model.avoid_weight"):
+        create_policy("convnet", avoid_weight=-1.0)
+
+
+def test_gradient_clipping_trains_under_bf16_autocast(dataset_path, tmp_path):
+    # the fused Adam cannot be clipped by Lightning's mixed-precision plugin: clipping must pick another
+    module = create_policy("convnet", tbptt_steps=8, warmup_epochs=0, gradient_clip_val=1e-3, cpu_threads=None)
+    data = TrajectoryDataModule(dataset_path, batch_size=4, val_fraction=0.0)
+    before = [p.detach().clone() for p in module.net.parameters()]
+    trainer = L.Trainer(max_epochs=1, default_root_dir=tmp_path, logger=False, enable_checkpointing=False,
+                        enable_progress_bar=False, enable_model_summary=False, precision="bf16-mixed")
+    trainer.fit(module, datamodule=data)
+    assert trainer.global_step == 3  # lengths up to 23 in chunks of 8
+    moved = [p.detach() - b for p, b in zip(module.net.parameters(), before, strict=True)]
+    assert any(float(m.abs().max()) > 0 for m in moved)
 
 
 def test_short_names_are_policy_classes_with_contract_hparams():

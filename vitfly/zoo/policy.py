@@ -46,6 +46,27 @@ def masked_mse(prediction: torch.Tensor, target: torch.Tensor, mask: torch.Tenso
     return F.mse_loss(prediction[mask], target[mask])
 
 
+def avoidance_weights(target: torch.Tensor, avoid_weight: float) -> torch.Tensor:
+    """Per-step loss weights ``1 + avoid_weight * |(y, z) of the normalised label|``, shape (N,).
+
+    Most labels are straight flight; weighting the steps by how hard the expert swerves makes the rare
+    avoidance manoeuvres count for more of the gradient (``avoid_weight`` 0: every step 1, paper eq. 1).
+    """
+    return 1.0 + avoid_weight * target[..., 1:].norm(dim=-1)
+
+
+def weighted_masked_mse(
+    prediction: torch.Tensor, target: torch.Tensor, mask: torch.Tensor, avoid_weight: float
+) -> torch.Tensor:
+    """``masked_mse`` with each valid step weighted by ``avoidance_weights`` (a weighted mean over steps)."""
+    if not avoid_weight:
+        return masked_mse(prediction, target, mask)
+    pred, tgt = prediction[mask], target[mask]
+    weights = avoidance_weights(tgt, avoid_weight)
+    per_step = (pred.float() - tgt.float()).pow(2).mean(dim=-1)
+    return (weights * per_step).sum() / weights.sum()
+
+
 def detach_hidden(hidden: Any) -> Any:
     """The recurrent state cut from the graph (tensors, or tuples/lists of them; None stays None)."""
     if hidden is None:
@@ -108,6 +129,9 @@ class PolicyModule(L.LightningModule):
             paper's setting; 0.1: the paper code's optional decay). The factor is set before every
             optimiser step from the fractional epoch, so a resumed run continues the same schedule.
         weight_decay: Adam weight decay.
+        avoid_weight: weight each step's loss by ``1 + avoid_weight * |lateral, vertical label|`` (normalised
+            label), so avoidance manoeuvres outweigh straight flight (0: paper eq. 1, every step alike).
+            Validation and test metrics stay unweighted.
         tbptt_steps: time steps per optimiser step; each batch is walked in chunks of this length with
             the recurrent state carried across chunks, detached (None: the whole batch at once).
         gradient_clip_val: clip the gradient norm to this value before each step (None: no clipping).
@@ -132,6 +156,7 @@ class PolicyModule(L.LightningModule):
         warmup_start_factor: float = 0.1,
         lr_decay: float = 1.0,
         weight_decay: float = 0.0,
+        avoid_weight: float = 0.0,
         tbptt_steps: int | None = 32,
         gradient_clip_val: float | None = None,
         compile: bool = False,
@@ -145,6 +170,8 @@ class PolicyModule(L.LightningModule):
         )
         if not threads_ok:
             raise VitflyError(f"model.cpu_threads: expected auto, a thread count >= 1 or null, got {cpu_threads!r}")
+        if avoid_weight < 0:
+            raise VitflyError(f"model.avoid_weight: expected a weight >= 0, got {avoid_weight}")
         if tbptt_steps is not None and tbptt_steps < 1:
             raise VitflyError(f"model.tbptt_steps: expected a positive number of steps or null, got {tbptt_steps}")
         self.save_hyperparameters()
@@ -222,7 +249,8 @@ class PolicyModule(L.LightningModule):
         mask, speed = chunk["mask"], chunk["desired_speed"]
         all_valid = chunk.get("all_valid")
         prediction, hidden = self._forward_valid(chunk["depth"], speed, chunk["quat"], hidden, mask, all_valid)
-        return masked_mse(prediction, normalised_target(chunk["velocity_cmd"], speed), mask), hidden
+        target = normalised_target(chunk["velocity_cmd"], speed)
+        return weighted_masked_mse(prediction, target, mask, self.hparams.avoid_weight), hidden
 
     def rank_chunks(self, batch: Mapping[str, torch.Tensor]) -> Iterator[tuple[dict[str, torch.Tensor] | None, float]]:
         """(chunk, loss weight) per optimiser step: ``tbptt_chunks`` with weight 1 in a single process.
@@ -341,8 +369,9 @@ class PolicyModule(L.LightningModule):
         hp = self.hparams
         params = list(self.net.parameters())
         # one fused kernel for all parameters instead of ~10 small ops per parameter tensor (the profiled
-        # CPU step spent ~5 % in Adam's per-tensor ops); same update rule
-        fused = all(p.device.type in FUSED_ADAM_DEVICES for p in params) or None
+        # CPU step spent ~5 % in Adam's per-tensor ops); same update rule. Not with gradient clipping:
+        # Lightning's mixed-precision plugin refuses to clip for an optimiser that unscales internally
+        fused = (not hp.gradient_clip_val and all(p.device.type in FUSED_ADAM_DEVICES for p in params)) or None
         return torch.optim.Adam(params, lr=hp.lr * hp.warmup_start_factor, weight_decay=hp.weight_decay, fused=fused)
 
     # -- validation / test / predict ------------------------------------------------------------
