@@ -6,6 +6,7 @@ tests/test_reproduce_tiny.py (slow).
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from pathlib import Path
 
@@ -25,7 +26,7 @@ CONFIG = REPO / "configs" / "reproduce.yaml"
 # -- configuration -----------------------------------------------------------------------------------------
 
 
-@pytest.mark.parametrize("preset", ["tiny", "laptop", "paper"])
+@pytest.mark.parametrize("preset", ["tiny", "laptop", "shipped", "paper"])
 def test_shipped_presets_load(preset):
     cfg = load_reproduce_config(CONFIG, preset)
     assert cfg.preset == preset
@@ -203,3 +204,60 @@ def test_repeat_offsets_are_bounded_and_fixed_by_the_seed():
     np.testing.assert_array_equal(off, RepeatPlan(repeats=20, jitter_m=0.1, seed=5).offsets())
     np.testing.assert_array_equal(off[:5], RepeatPlan(repeats=5, jitter_m=0.1, seed=5).offsets())
     assert len({tuple(o) for o in off}) == 20
+
+
+# -- the results page from shipped weights (train.source: pretrained) ------------------------------------
+
+
+def test_shipped_preset_flies_the_weights_without_data(monkeypatch):
+    monkeypatch.chdir(REPO)
+    cfg = load_reproduce_config(CONFIG, "shipped")
+    assert cfg.train.source == "pretrained" and cfg.train.nostate_models == []
+    assert cfg.train.models == ["convnet", "lstmnet", "unet_lstm", "vit", "vit_lstm"]
+
+
+@pytest.mark.parametrize("text,message", [
+    ("train:\n  source: scratch\n", r"train.source: expected one of train, pretrained, got 'scratch'"),
+    ("train:\n  source: pretrained\n", r"train.source pretrained .* set train.nostate_models: \[\]"),
+    ("train:\n  source: pretrained\n  nostate_models: []\n  weights_dir: w\n", r"instead of train.weights_dir"),
+])
+def test_bad_train_source_is_one_line(tmp_path, text, message):
+    path = tmp_path / "r.yaml"
+    path.write_text(text)
+    with pytest.raises(VitflyError, match=message) as err:
+        load_reproduce_config(path)
+    assert "\n" not in str(err.value)
+
+
+def test_pretrained_source_evaluates_and_records_closed_loop(tmp_path, monkeypatch):
+    from test_pretrained import random_checkpoint
+
+    from vitfly.eval import records
+    from vitfly.workflows.reproduce import run_reproduce
+    from vitfly.zoo.pretrained import read_manifest, save_pretrained
+
+    weights = tmp_path / "weights"
+    monkeypatch.setenv("VITFLY_WEIGHTS_DIR", str(weights))
+    _, ckpt = random_checkpoint(tmp_path, "convnet")
+    save_pretrained(ckpt, "convnet", {"preset": "test", "steps": 7, "train_frames": 123}, weights)
+    path = tmp_path / "r.yaml"
+    path.write_text(
+        f"out: {tmp_path / 'study'}\ndata: {tmp_path / 'never.h5'}\n"
+        "train: {source: pretrained, models: [convnet], nostate_models: [], publish_models: [convnet]}\n"
+        "evaluate: {speeds: [3.0], spheres_trials: 2, trees_trials: 1, window_trials: 1, baselines: [straight],"
+        " num_envs: 2, timeout_s: 2.0}\n")
+    cfg = load_reproduce_config(path)
+    with pytest.raises(VitflyError, match=r"pretrained:lstmnet: not in .*manifest.json \(available: convnet\)"):
+        run_reproduce(dataclasses.replace(cfg, train=dataclasses.replace(cfg.train, models=["lstmnet"])),
+                      ["evaluate"], progress=False)
+    run_reproduce(cfg, ["data", "train", "evaluate", "report"], progress=False)
+    assert not (tmp_path / "never.h5").exists()  # no data stage for shipped weights
+    flown = records.read_sweep(tmp_path / "study" / "eval" / "spheres")
+    assert sorted(r.policy for r in flown) == ["convnet", "convnet", "straight", "straight"]
+    entry = read_manifest(weights)["models"]["convnet"]
+    spheres = entry["closed_loop"]["spheres"]["3"]
+    assert spheres["trials"] == 2
+    assert spheres["success"] == sum(r.success_paper for r in flown if r.policy == "convnet") / 2  # a fraction
+    assert entry["steps"] == 7  # the published entry otherwise unchanged
+    results = (tmp_path / "study" / "results.md").read_text()
+    assert "| pretrained:convnet | test | 7 | 123 |" in results

@@ -77,8 +77,15 @@ def stage_train_all(cfg: ReproduceConfig, progress: bool = True) -> dict[str, Pa
     return checkpoints
 
 
-def trained_checkpoints(cfg: ReproduceConfig) -> dict[str, Path]:
-    """label -> checkpoint of every finished training (one line naming the first missing one)."""
+def trained_checkpoints(cfg: ReproduceConfig) -> dict[str, Path | str]:
+    """label -> checkpoint of every finished training (one line naming the first missing one); with
+    ``train.source: pretrained``, label -> ``pretrained:<model>`` (a missing weights file is one line)."""
+    if cfg.train.source == "pretrained":
+        from vitfly.zoo.pretrained import manifest_entry
+
+        for model in cfg.train.models:
+            manifest_entry(model, cfg.train.weights_dir)
+        return {model: f"pretrained:{model}" for model in cfg.train.models}
     out = {}
     for model, use_state in runs(cfg):
         ckpt = done_checkpoint(cfg.train_dir(model, use_state))
@@ -183,8 +190,13 @@ def run_reproduce(cfg: ReproduceConfig, stages: list[str] | None = None, progres
         if s not in stages:
             continue
         t0 = time.perf_counter()
-        if s == "data":
+        if s == "data" and cfg.train.source == "pretrained":
+            print("[data] train.source pretrained: no training data needed")
+        elif s == "data":
             stage_data(cfg, progress)
+        elif s == "train" and cfg.train.source == "pretrained":
+            checkpoints = trained_checkpoints(cfg)
+            print(f"[train] train.source pretrained: flying the shipped weights of {', '.join(checkpoints)}")
         elif s == "train":
             checkpoints = stage_train_all(cfg, progress)
         elif s in ("evaluate", "paths"):

@@ -29,6 +29,7 @@ STAGES = ("data", "train", "evaluate", "paths", "latency", "report")
 class ReproduceTrain:
     """Which networks to train, and how: each model's recipe, then ``overrides``, then ``per_model[model]``."""
 
+    source: str = "train"  # train: train every run here; pretrained: fly the shipped weights (pretrained:<model>)
     recipes: str = "configs/fit"  # <recipes>/<model>.yaml: a `vitfly fit` config (LightningCLI layout)
     models: list[str] = field(default_factory=lambda: [*PAPER_MODELS, "resnet18"])  # with the state input
     nostate_models: list[str] = field(default_factory=lambda: list(PAPER_MODELS))  # also trained without it
@@ -140,6 +141,7 @@ def check_config(cfg: ReproduceConfig, source: str) -> None:
     from vitfly.zoo import list_models
 
     t = cfg.train
+    check_train_source(cfg, source)
     known = list_models()
     for key in ("models", "nostate_models", "publish_models"):
         for m in getattr(t, key):
@@ -244,6 +246,22 @@ def train_callbacks(stage: TrainStage, cfg: ReproduceConfig, source: str) -> tup
     if cfg.train.closed_loop_check is not None:
         callbacks.append(_closed_loop_check(cfg.train.closed_loop_check, source))
     return dataclasses.replace(stage, trainer_kwargs=kwargs), callbacks
+
+
+TRAIN_SOURCES = ("train", "pretrained")
+
+
+def check_train_source(cfg: ReproduceConfig, source: str) -> None:
+    """``train.source`` is known, and ``pretrained`` asks only for what is shipped (state models)."""
+    if cfg.train.source not in TRAIN_SOURCES:
+        raise VitflyError(f"{source}: train.source: expected one of {', '.join(TRAIN_SOURCES)}, "
+                          f"got {cfg.train.source!r}")
+    if cfg.train.source == "pretrained" and cfg.train.weights_dir is not None:
+        raise VitflyError(f"{source}: train.source pretrained flies pretrained:<model> from $VITFLY_WEIGHTS_DIR or "
+                          "<repository>/weights; set that instead of train.weights_dir")
+    if cfg.train.source == "pretrained" and cfg.train.nostate_models:
+        raise VitflyError(f"{source}: train.source pretrained flies the shipped weights, which are trained with "
+                          "the state input only; set train.nostate_models: [] (the ablation needs training)")
 
 
 def runs(cfg: ReproduceConfig) -> list[tuple[str, bool]]:

@@ -81,6 +81,8 @@ def closed_loop_numbers(rows_by_sweep: dict[str, list[dict] | None], model: str,
 def _training_table(cfg: ReproduceConfig) -> str:
     import torch
 
+    if cfg.train.source == "pretrained":
+        return _shipped_table(cfg)
     lines = ["| run | epochs | optimiser steps | training frames | wall time (min) | checkpoint |",
              "|---|---:|---:|---:|---:|---|"]
     for model, use_state in runs(cfg):
@@ -97,6 +99,20 @@ def _training_table(cfg: ReproduceConfig) -> str:
         epochs, steps = saved.get("epoch", -1) + 1, saved.get("global_step", "-")
         lines.append(f"| {run_label(model, use_state)} | {epochs} | {steps} | {frames if frames is not None else '-'} "
                      f"| {wall} | {ckpt} |")
+    return "\n".join(lines) + "\n"
+
+
+def _shipped_table(cfg: ReproduceConfig) -> str:
+    """The training record of the shipped weights, from ``weights/manifest.json``."""
+    from vitfly.zoo.pretrained import manifest_entry
+
+    lines = ["| model | preset | optimiser steps | training frames | wall time (min) | dataset hash |",
+             "|---|---|---:|---:|---:|---|"]
+    for model in cfg.train.models:
+        e = manifest_entry(model)
+        wall = f"{e['train_wall_s'] / 60:.1f}" if isinstance(e.get("train_wall_s"), (int, float)) else "-"
+        lines.append(f"| pretrained:{model} | {e.get('preset', '-')} | {e.get('steps', '-')} | "
+                     f"{e.get('train_frames', '-')} | {wall} | {e.get('dataset_hash', '-')} |")
     return "\n".join(lines) + "\n"
 
 
@@ -153,7 +169,9 @@ def stage_report(cfg: ReproduceConfig) -> dict:
               "max_mean_lateral_deviation_m": lateral,
               "files": {k: str(v) for k, v in files.items()}, "config": dataclasses.asdict(cfg)}
     write_text(out / "results.json", json.dumps(result, indent=2, default=str) + "\n")
-    if cfg.train.publish_weights:
+    if cfg.train.source == "pretrained":
+        _record_closed_loop(cfg, rows)
+    elif cfg.train.publish_weights:
         _publish_closed_loop(cfg, rows)
     print(f"[report] {out / 'results.md'}: " + ", ".join(f"{f.key} {f.verdict}" for f in findings))
     return result
@@ -168,6 +186,16 @@ def _publish_closed_loop(cfg: ReproduceConfig, rows: dict) -> None:
         entry = manifest.get(model)
         if ckpt is not None and entry and entry.get("source_checkpoint") == str(ckpt.resolve()):
             update_manifest(model, {"closed_loop": closed_loop_numbers(rows, model, cfg)}, cfg.train.weights_dir)
+
+
+def _record_closed_loop(cfg: ReproduceConfig, rows: dict) -> None:
+    """The shipped weights' closed-loop numbers into their manifest entries (those flown in this study)."""
+    from vitfly.zoo.pretrained import update_manifest
+
+    for model in cfg.train.models:
+        numbers = closed_loop_numbers(rows, model, cfg)
+        if any(env in numbers for env in ("spheres", "trees", "window")):
+            update_manifest(model, {"closed_loop": numbers})
 
 
 def results_markdown(cfg: ReproduceConfig, findings_md: str, files: dict[str, Path], ablation_md: str,
