@@ -12,7 +12,7 @@ background, so compression behaves as on real data):
     .venv/bin/python benchmarks/data_loading.py [--trajectories 40 --steps 300 --big-trajectories 240 --workers 0 2]
         [--depth-compression none gzip]
 
-Numbers depend on the machine and on what else runs; the README quotes one run and the command.
+Numbers depend on the machine and on what else runs; docs/datasets.md quotes one run and the command.
 """
 
 from __future__ import annotations

@@ -12,6 +12,7 @@ import importlib
 import sys
 
 from vitfly.errors import VitflyError
+from vitfly.quiet import quiet_third_party
 
 LIGHTNING_SUBCOMMANDS = ("fit", "validate", "test", "predict")
 
@@ -54,6 +55,7 @@ def main(argv: list[str] | None = None) -> int:
         parser.parse_args(argv or ["--help"])  # prints help or the "invalid choice" error
         return 2
     command, rest = argv[0], argv[1:]
+    quiet_third_party()  # Lightning's tips and known dependency warnings; vitfly's own output stays
     try:
         if command in LIGHTNING_SUBCOMMANDS:
             from vitfly.training_cli import run_lightning_cli

@@ -75,8 +75,8 @@ class WindowConfig:
     region: Region = field(default_factory=Region)
 
 
-# Density presets. Spheres `medium` is calibrated (README) so that at 3 m/s the expert succeeds in
-# roughly 80-90 % of trials and straight flight in at most ~30 %.
+# Density presets. Spheres `medium` is calibrated (docs/simulator.md, "Calibration") so that at 3 m/s the
+# expert succeeds in roughly 80-90 % of trials and straight flight in at most ~30 %.
 PRESET_CONFIGS: dict[str, dict[str, SpheresConfig | TreesConfig | WindowConfig]] = {
     "spheres": {
         "easy": SpheresConfig(count=120),

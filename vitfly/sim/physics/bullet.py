@@ -18,32 +18,15 @@ from __future__ import annotations
 
 import contextlib
 import os
-import sys
 
 import numpy as np
-import pybullet
 
+from vitfly.quiet import silence_fds
 from vitfly.sim.physics.base import Fleet
 from vitfly.sim.quadrotor import GRAVITY_MPS2, Airframe, DroneState
 
-
-@contextlib.contextmanager
-def _quiet_stdout():
-    """pybullet's C code prints a banner on connect; keep it off our stdout (progress bars, pipes)."""
-    try:
-        fd = sys.stdout.fileno()
-    except (AttributeError, OSError, ValueError):
-        yield
-        return
-    sys.stdout.flush()
-    saved = os.dup(fd)
-    try:
-        with open(os.devnull, "w") as devnull:
-            os.dup2(devnull.fileno(), fd)
-            yield
-    finally:
-        os.dup2(saved, fd)
-        os.close(saved)
+with silence_fds():  # pybullet prints "pybullet build time: ..." from C at import
+    import pybullet
 
 
 # Connecting a pybullet client costs ~15 ms, a noticeable part of a short episode: closed fleets
@@ -59,7 +42,7 @@ def _acquire_client() -> int:
         owner, cid = _IDLE_CLIENTS.pop()
         if owner == pid and pybullet.isConnected(physicsClientId=cid):
             return cid
-    with _quiet_stdout():
+    with silence_fds(1):  # some pybullet builds print a banner on connect; keep it off stdout
         return pybullet.connect(pybullet.DIRECT)
 
 
