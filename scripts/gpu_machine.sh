@@ -16,7 +16,7 @@
 # DIR (default runs/gpu_machine) receives what comes back small: pipeline.json, summary.md, timings.txt and
 # run.log; the dataset and checkpoints stay in /tmp/vitfly (CONFIG=... picks another
 # pipeline YAML, default scripts/gpu_machine.yaml). The pipeline alone (150 trajectories, 6 epochs,
-# 3 x 40 trials) took 1.5 minutes on the 2-core CPU machine of the README; on 16 cores and a GPU, less.
+# 3 x 40 trials) took 1.5 minutes on the 2-core CPU machine of docs/install.md; on 16 cores and a GPU, less.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 

@@ -116,11 +116,12 @@ def test_wandb_logger_runs_offline(data_path, tmp_path, monkeypatch):
     assert wandb.run is None  # finished between runs
 
 
-def test_print_config_shows_paper_hyper_parameters(capsys):
+def test_print_config_shows_the_recipe(capsys):
     assert main(["fit", "--config", str(REPO / "configs/fit/vit_lstm.yaml"), "--print_config"]) == 0
     out = capsys.readouterr().out
     assert "class_path: vitfly.zoo.policy.vit_lstm" in out
-    assert "lr: 0.0001" in out and "warmup_epochs: 5" in out and "warmup_start_factor: 0.1" in out
+    assert "lr: 0.0001" in out and "warmup_epochs: 1" in out and "warmup_start_factor: 0.1" in out
+    assert "avoid_weight: 10.0" in out and "tbptt_steps: 32" in out and "mirror_prob: 0.5" in out
 
 
 def test_all_model_configs_parse():

@@ -40,10 +40,12 @@ def test_laptop_budget_merges_recipe_overrides_and_per_model(monkeypatch):
     t = train_stage(cfg, "vit_lstm", False)
     # recipe configs/fit/vit_lstm.yaml, then overrides (cache), then per_model (epochs, warm-up, max_time)
     assert (t.model, t.use_state, t.max_epochs, t.batch_size, t.val_fraction, t.seed) == ("vit_lstm", False, 8, 4,
-                                                                                        0.2, 0)
+                                                                                        0.1, 0)
     assert t.policy_kwargs == {"lr": 1e-4, "warmup_epochs": 1, "warmup_start_factor": 0.1, "lr_decay": 1.0,
-                               "tbptt_steps": 64, "gradient_clip_val": None, "compile": False, "cpu_threads": "auto"}
-    assert t.data_kwargs == {"max_length": None, "num_workers": 1, "cache_mb": 1024, "resident": True}
+                               "avoid_weight": 10.0, "tbptt_steps": 32, "gradient_clip_val": 1.0, "compile": False,
+                               "cpu_threads": "auto"}
+    assert t.data_kwargs == {"max_length": None, "mirror_prob": 0.5, "num_workers": 1, "cache_mb": 1024,
+                             "resident": True}
     assert t.trainer_kwargs == {"log_every_n_steps": 10, "precision": "bf16-mixed", "max_time": "00:01:00:00"}
     # every run of the laptop preset is capped below 2 hours
     for m in cfg.train.models:
