@@ -29,6 +29,7 @@ SUBCOMMANDS: dict[str, tuple[str, str]] = {
     "explain": ("explain", "attention and Grad-CAM maps of networks over one trial (PNG, GIF, consistency numbers)"),
     "pipeline": ("pipeline", "the main job: collect if missing, train, fly against expert and straight, report"),
     "reproduce": ("reproduce", "the paper's results section: data, 11 trainings, every evaluation, results.md"),
+    "dagger": ("dagger", "DAgger with the privileged expert beside behaviour cloning at equal labelled frames"),
     "publish-weights": ("publish_weights", "a trained checkpoint as weights/NAME.safetensors (fp16) + manifest"),
 }
 

@@ -58,6 +58,7 @@ def train_policy(
     trainer_kwargs: dict | None = None,
     progress_bar: bool = True,
     callbacks: list | None = None,
+    init_weights: str | os.PathLike | None = None,
 ) -> Path:
     """Train ``model`` on ``data_path``; returns the path of the best checkpoint (last if no validation).
 
@@ -67,7 +68,10 @@ def train_policy(
     a dataset that grew keeps the validation trajectories and trains on the new ones as well.
     ``policy_kwargs`` go to PolicyModule (e.g. lr, tbptt_steps), ``data_kwargs`` to TrajectoryDataModule,
     ``trainer_kwargs`` to lightning.Trainer, ``callbacks`` join the Trainer's (e.g.
-    ``vitfly.workflows.closed_loop_check.ClosedLoopCheck``).
+    ``vitfly.workflows.closed_loop_check.ClosedLoopCheck``). ``init_weights`` (a checkpoint of the same network,
+    e.g. the previous DAgger round's) starts the network from those weights instead of a random initialisation:
+    a fine-tune with a fresh optimiser and learning-rate schedule. It applies to a fresh run only; a run that
+    resumes from ``last.ckpt`` already holds them.
     """
     import lightning as L
     from lightning.pytorch.callbacks import ModelCheckpoint, RichProgressBar
@@ -103,12 +107,28 @@ def train_policy(
     last = ckpt_dir / "last.ckpt"
     if last.exists():
         _check_same_run(last, model, use_state)
+    elif init_weights is not None:
+        load_initial_weights(policy, init_weights, model, use_state)
     trainer.fit(policy, datamodule=data, ckpt_path=str(last) if last.exists() else None, weights_only=True)
     best = checkpoint.best_model_path
     path = Path(best) if best else last
     if not path.exists():
         raise VitflyError(f"{out_dir}: training ended without writing a checkpoint (max_epochs={max_epochs})")
     return path
+
+
+def load_initial_weights(policy, path: str | os.PathLike, model: str, use_state: bool) -> None:
+    """Copy the network weights of checkpoint ``path`` into ``policy.net``; one line if it holds another network."""
+    from vitfly.zoo import load_network
+    from vitfly.zoo.checkpoint import network_hparams, read_torch_file
+
+    hparams = network_hparams(read_torch_file(path), str(path))
+    if (hparams["model"], hparams["use_state"]) != (model, use_state):
+        raise VitflyError(
+            f"{path}: init_weights holds model {hparams['model']!r} (use_state={hparams['use_state']}), "
+            f"not {model!r} (use_state={use_state})"
+        )
+    policy.net.load_state_dict(load_network(path).state_dict())
 
 
 def _check_same_run(last: Path, model: str, use_state: bool) -> None:

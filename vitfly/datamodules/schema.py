@@ -16,6 +16,16 @@ This module is the single owner of the on-disk format (DESIGN.md "Datasets")::
     /traj_offsets   int64   (M+1,)       trajectory m is rows [off[m], off[m+1])
     /trajectories/{env, seed, desired_speed, n_collisions, success}   (M,) each
 
+Optional fields (version 1 still; files without them stay valid, a writer creates them only when asked):
+
+    /velocity_cmd_executed       float32 (N, 3)  the command actually flown, m/s, world frame; differs from
+                                                 /velocity_cmd where another policy flew (DAgger: the student)
+    /trajectories/dagger_round   int64   (M,)    DAgger round that flew the trajectory (0: the expert's own data)
+    /trajectories/dagger_beta    float32 (M,)    probability that the expert's command was flown at a tick
+
+A file holds each optional field for all of its trajectories or not at all: a writer that reopens a file
+with them needs every appended record to carry them, and refuses records that carry fields the file lacks.
+
 Readers accept files written by other tools: ``/trajectories/env`` may be any HDF5 string type
 (fixed or variable length, ASCII or UTF-8), integer fields any signed or unsigned integer type, and
 every dataset any storage layout (contiguous, chunked, compressed or not). Appending needs the
@@ -78,7 +88,16 @@ TRAJ_FIELDS: dict[str, np.dtype] = {
     "n_collisions": np.dtype(np.int64),
     "success": np.dtype(np.bool_),
 }
-FLOAT_ROW_FIELDS = tuple(k for k, (dt, _) in ROW_FIELDS.items() if dt.kind == "f")
+# optional fields (see the module docstring): absent from older files, written only when a writer asks for them
+OPTIONAL_ROW_FIELDS: dict[str, tuple[np.dtype, tuple[int, ...]]] = {
+    "velocity_cmd_executed": (np.dtype(np.float32), (3,)),
+}
+OPTIONAL_TRAJ_FIELDS: dict[str, np.dtype] = {
+    "dagger_round": np.dtype(np.int64),
+    "dagger_beta": np.dtype(np.float32),
+}
+OPTIONAL_FIELDS = (*OPTIONAL_ROW_FIELDS, *OPTIONAL_TRAJ_FIELDS)
+FLOAT_ROW_FIELDS = tuple(k for k, (dt, _) in {**ROW_FIELDS, **OPTIONAL_ROW_FIELDS}.items() if dt.kind == "f")
 TELEMETRY_CHUNK_ROWS = 4096
 DEPTH_CHUNK_FRAMES = 64
 # How /depth is stored (the reader handles both). "none" streams several times faster than "gzip" (gzip
@@ -122,6 +141,8 @@ class TrajectoryRecord:
     desired_speed: m/s, a scalar (constant over the flight) or (T,).
     quat: (T, 4) attitude (w, x, y, z), body to world. position (T, 3) m, velocity (T, 3) m/s and
     velocity_cmd (T, 3) m/s are world frame. time: (T,) s since the start. collision: bool (T,).
+    Optional (None: not recorded): velocity_cmd_executed (T, 3) m/s, the command flown when it is not the
+    label; dagger_round and dagger_beta, the DAgger round and mixing probability that flew the trajectory.
     """
 
     depth: np.ndarray
@@ -136,6 +157,13 @@ class TrajectoryRecord:
     seed: int = 0
     n_collisions: int = 0
     success: bool = False
+    velocity_cmd_executed: np.ndarray | None = None
+    dagger_round: int | None = None
+    dagger_beta: float | None = None
+
+    def optional_fields(self) -> tuple[str, ...]:
+        """The optional schema fields this record carries."""
+        return tuple(name for name in OPTIONAL_FIELDS if getattr(self, name) is not None)
 
     @property
     def length(self) -> int:
@@ -162,8 +190,12 @@ class TrajectoryRecord:
             "time": self.time,
             "collision": self.collision,
         }
+        fields = dict(ROW_FIELDS)
+        if self.velocity_cmd_executed is not None:
+            arrays["velocity_cmd_executed"] = self.velocity_cmd_executed
+            fields.update(OPTIONAL_ROW_FIELDS)
         out = {}
-        for name, (dtype, tail) in ROW_FIELDS.items():
+        for name, (dtype, tail) in fields.items():
             arr = np.asarray(arrays[name])
             if arr.shape != (t, *tail):
                 raise VitflyError(f"TrajectoryRecord.{name}: expected shape {(t, *tail)}, got {arr.shape}")
@@ -180,13 +212,21 @@ class TrajectoryRecord:
     def traj_row(self) -> dict[str, Any]:
         """The /trajectories entry for this record."""
         speed = np.asarray(self.desired_speed, dtype=np.float32)
-        return {
+        row = {
             "env": self.env.encode(),
             "seed": int(self.seed),
             "desired_speed": float(speed if speed.ndim == 0 else speed.mean()),
             "n_collisions": int(self.n_collisions),
             "success": bool(self.success),
         }
+        if self.dagger_round is not None:
+            row["dagger_round"] = int(self.dagger_round)
+        if self.dagger_beta is not None:
+            beta = float(self.dagger_beta)
+            if not 0.0 <= beta <= 1.0:
+                raise VitflyError(f"TrajectoryRecord.dagger_beta: expected a probability in [0, 1], got {beta}")
+            row["dagger_beta"] = beta
+        return row
 
 
 # ---------------------------------------------------------------------------------------------
@@ -311,7 +351,9 @@ def validate_file(f: h5py.File, path: Path, *, allow_empty: bool = False) -> int
     off = offsets[...]
     m = off.shape[0] - 1
     n_rows = None
-    for name, (dtype, tail) in ROW_FIELDS.items():
+    optional = optional_fields_of(f)
+    row_fields = {**ROW_FIELDS, **{k: v for k, v in OPTIONAL_ROW_FIELDS.items() if k in optional}}
+    for name, (dtype, tail) in row_fields.items():
         if name not in f:
             raise VitflyError(f"{path}: dataset '/{name}' is missing")
         ds = f[name]
@@ -325,7 +367,8 @@ def validate_file(f: h5py.File, path: Path, *, allow_empty: bool = False) -> int
         raise VitflyError(
             f"{path}: dataset '/traj_offsets' is not an increasing list of row offsets from 0 to <= {n_rows}"
         )
-    for name, dtype in TRAJ_FIELDS.items():
+    traj_fields = {**TRAJ_FIELDS, **{k: v for k, v in OPTIONAL_TRAJ_FIELDS.items() if k in optional}}
+    for name, dtype in traj_fields.items():
         key = f"trajectories/{name}"
         if key not in f:
             raise VitflyError(f"{path}: dataset '/{key}' is missing")
@@ -340,9 +383,18 @@ def validate_file(f: h5py.File, path: Path, *, allow_empty: bool = False) -> int
     return m
 
 
+def optional_fields_of(f: h5py.File) -> tuple[str, ...]:
+    """The optional schema fields (``OPTIONAL_FIELDS``) an open file holds, in schema order."""
+    rows = [name for name in OPTIONAL_ROW_FIELDS if name in f]
+    table = [name for name in OPTIONAL_TRAJ_FIELDS if f"trajectories/{name}" in f]
+    return (*rows, *table)
+
+
 def check_finite(f: h5py.File, path: Path, n_rows: int, block: int = 1 << 18) -> None:
     """Raise VitflyError naming the first float telemetry field (and row) that holds NaN or inf."""
     for name in FLOAT_ROW_FIELDS:
+        if name not in f:  # an optional field the file does not hold
+            continue
         ds = f[name]
         for start in range(0, n_rows, block):
             values = ds[start : min(start + block, n_rows)]
@@ -372,7 +424,9 @@ class TrajectoryFile:
             self.offsets = self._file["traj_offsets"][...]
             if check_values:
                 check_finite(self._file, self.path, int(self.offsets[-1]))
-            self.table = {name: self._file[f"trajectories/{name}"][:m] for name in TRAJ_FIELDS}
+            self.optional_fields = optional_fields_of(self._file)
+            table_fields = [*TRAJ_FIELDS, *(k for k in OPTIONAL_TRAJ_FIELDS if k in self.optional_fields)]
+            self.table = {name: self._file[f"trajectories/{name}"][:m] for name in table_fields}
             # env as str whatever string type stored it (fixed-length bytes, variable-length str or bytes)
             self.table["env"] = np.array([_as_str(v) for v in self.table["env"]], dtype=object)
             self.sensor = read_sensor_attrs(self._file, self.path)
@@ -413,15 +467,20 @@ class TrajectoryFile:
             self._readahead = ChunkReadahead(self._file, self.path)
         self._readahead.advise(fields, int(self.offsets[m]), int(self.offsets[m + 1]))
 
+    @property
+    def row_fields(self) -> tuple[str, ...]:
+        """The per-row fields this file holds: the schema's, then the optional ones present."""
+        return (*ROW_FIELDS, *(k for k in OPTIONAL_ROW_FIELDS if k in self.optional_fields))
+
     def meta(self, m: int) -> dict[str, Any]:
-        """The /trajectories entry of trajectory m (env as str)."""
-        row = {name: self.table[name][m] for name in TRAJ_FIELDS}
+        """The /trajectories entry of trajectory m (env as str), optional fields included where the file has them."""
+        row = {name: values[m] for name, values in self.table.items()}
         return {k: (v.item() if isinstance(v, np.generic) else v) for k, v in row.items()}
 
     def __getitem__(self, m: int) -> TrajectoryRecord:
         meta = self.meta(m)
         del meta["desired_speed"]  # the per-row speeds are the record's
-        return TrajectoryRecord(**self.read(m), **meta)
+        return TrajectoryRecord(**self.read(m, self.row_fields), **meta)
 
     def __iter__(self) -> Iterator[TrajectoryRecord]:
         for m in range(len(self)):
@@ -464,7 +523,12 @@ def sensor_attrs(camera: dict | None, control_hz: float | None) -> dict[str, Any
 
 
 def _create_layout(
-    f: h5py.File, config: dict, depth_max_m: float, depth_compression: str = "none", sensor: dict | None = None
+    f: h5py.File,
+    config: dict,
+    depth_max_m: float,
+    depth_compression: str = "none",
+    sensor: dict | None = None,
+    optional: Sequence[str] = (),
 ) -> None:
     f.attrs["schema"] = SCHEMA_NAME
     f.attrs["schema_version"] = SCHEMA_VERSION
@@ -474,7 +538,8 @@ def _create_layout(
     f.attrs["config"] = json.dumps(config, sort_keys=True, default=str)
     for key, value in (sensor or {}).items():
         f.attrs[key] = value
-    for name, (dtype, tail) in ROW_FIELDS.items():
+    rows = {**ROW_FIELDS, **{k: v for k, v in OPTIONAL_ROW_FIELDS.items() if k in optional}}
+    for name, (dtype, tail) in rows.items():
         if name == "depth":
             f.create_dataset(name, (0, *tail), maxshape=(None, *tail), dtype=dtype, **DEPTH_STORAGE[depth_compression])
         else:
@@ -483,7 +548,8 @@ def _create_layout(
             )
     f.create_dataset("traj_offsets", data=np.zeros(1, dtype=np.int64), maxshape=(None,), chunks=(1024,))
     group = f.create_group("trajectories")
-    for name, dtype in TRAJ_FIELDS.items():
+    table = {**TRAJ_FIELDS, **{k: v for k, v in OPTIONAL_TRAJ_FIELDS.items() if k in optional}}
+    for name, dtype in table.items():
         group.create_dataset(name, (0,), maxshape=(None,), dtype=dtype, chunks=(1024,))
 
 
@@ -494,12 +560,15 @@ def _rebuild_committed(src_path: Path, dst_path: Path) -> None:
         off = src["traj_offsets"][...]
         m, n = len(off) - 1, int(off[-1])
         config = json.loads(_attr_str(src.attrs.get("config", "{}")) or "{}")
+        optional = optional_fields_of(src)
+        rows = [*ROW_FIELDS, *(k for k in OPTIONAL_ROW_FIELDS if k in optional)]
+        table = [*TRAJ_FIELDS, *(k for k in OPTIONAL_TRAJ_FIELDS if k in optional)]
         with h5py.File(dst_path, "w", libver="latest") as dst:
             storage = depth_storage_of(src)
-            _create_layout(dst, config, float(src.attrs["depth_max_m"]), storage)
+            _create_layout(dst, config, float(src.attrs["depth_max_m"]), storage, optional=optional)
             for key, value in src.attrs.items():  # schema, version, sensor attributes, ... as they were
                 dst.attrs[key] = value
-            for name in ROW_FIELDS:
+            for name in rows:
                 dst[name].resize(n, axis=0)
             copied = set()
             if storage == "gzip":  # one frame per chunk: copy the compressed bytes, no re-compression
@@ -508,12 +577,12 @@ def _rebuild_committed(src_path: Path, dst_path: Path) -> None:
                     mask, chunk = src_depth.read_direct_chunk((i, 0, 0))
                     dst_depth.write_direct_chunk((i, 0, 0), chunk, mask)
                 copied.add("depth")
-            for name in ROW_FIELDS:
+            for name in rows:
                 if name not in copied:
                     for start in range(0, n, 1 << 14):
                         stop = min(start + (1 << 14), n)
                         dst[name][start:stop] = src[name][start:stop]
-            for name in TRAJ_FIELDS:
+            for name in table:
                 key = f"trajectories/{name}"
                 dst[key].resize(m, axis=0)
                 dst[key][:] = src[key][:m]
@@ -531,6 +600,8 @@ class TrajectoryWriter:
     DEPTH_STORAGE) applies to a new file; a reopened file keeps the storage it was created with.
     ``camera`` (a JSON-able dict of the camera's settings) and ``control_hz`` (Hz), when known, are
     stored as root attributes of a new file; a reopened file that records them must record the same.
+    ``optional_fields`` (names from ``OPTIONAL_FIELDS``) are created in a new file; a reopened file must
+    hold them. Every appended record must carry exactly the optional fields the file holds.
     """
 
     def __init__(
@@ -541,10 +612,15 @@ class TrajectoryWriter:
         depth_compression: str = "none",
         camera: dict | None = None,
         control_hz: float | None = None,
+        optional_fields: Sequence[str] = (),
     ):
         self.path = Path(path)
         self.depth_max_m = float(depth_max_m)
         check_depth_compression(depth_compression)
+        unknown = [name for name in optional_fields if name not in OPTIONAL_FIELDS]
+        if unknown:
+            raise VitflyError(f"optional_fields: unknown field {unknown[0]!r}; expected some of "
+                              f"{', '.join(OPTIONAL_FIELDS)}")
         self._sensor = sensor_attrs(camera, control_hz)
         self.path.parent.mkdir(parents=True, exist_ok=True)
         for stale in self.path.parent.glob(f".{self.path.name}.tmp-*"):
@@ -558,7 +634,8 @@ class TrajectoryWriter:
             tmp = _tmp_path(self.path)
             try:
                 with h5py.File(tmp, "w", libver="latest") as f:
-                    _create_layout(f, config or {}, self.depth_max_m, depth_compression, self._sensor)
+                    _create_layout(f, config or {}, self.depth_max_m, depth_compression, self._sensor,
+                                   optional=optional_fields)
                 os.replace(tmp, self.path)
             finally:
                 tmp.unlink(missing_ok=True)
@@ -569,6 +646,13 @@ class TrajectoryWriter:
         self._rows = int(off[-1])
         self._seeds = [int(s) for s in self._file["trajectories/seed"][: self._num]]
         self.config = json.loads(_attr_str(self._file.attrs.get("config", "{}")) or "{}")
+        self.optional_fields = optional_fields_of(self._file)
+        missing = [name for name in optional_fields if name not in self.optional_fields]
+        if missing:
+            self.close()
+            where = f"/trajectories/{missing[0]}" if missing[0] in OPTIONAL_TRAJ_FIELDS else f"/{missing[0]}"
+            raise VitflyError(f"{self.path}: dataset '{where}' is missing (the file was made without it); "
+                              "write to another --out")
 
     def _reopen(self) -> None:
         if not h5py.is_hdf5(str(self.path)):
@@ -603,10 +687,11 @@ class TrajectoryWriter:
             # rows beyond the last commit belong to an interrupted append: drop them
             off = f["traj_offsets"]
             m, n = off.shape[0] - 1, int(off[-1])
-            for name in ROW_FIELDS:
+            optional = optional_fields_of(f)
+            for name in (*ROW_FIELDS, *(k for k in OPTIONAL_ROW_FIELDS if k in optional)):
                 if f[name].shape[0] != n:
                     f[name].resize(n, axis=0)
-            for name in TRAJ_FIELDS:
+            for name in (*TRAJ_FIELDS, *(k for k in OPTIONAL_TRAJ_FIELDS if k in optional)):
                 if f[f"trajectories/{name}"].shape[0] != m:
                     f[f"trajectories/{name}"].resize(m, axis=0)
 
@@ -623,6 +708,14 @@ class TrajectoryWriter:
         """Write one trajectory and commit it; returns only once it is durable against SIGKILL."""
         if self._file is None:
             raise VitflyError(f"{self.path}: writer is closed")
+        carried = rec.optional_fields()
+        if set(carried) != set(self.optional_fields):
+            extra = sorted(set(carried) - set(self.optional_fields))
+            lacking = sorted(set(self.optional_fields) - set(carried))
+            if extra:
+                raise VitflyError(f"{self.path}: the record carries {extra[0]}, which this file does not hold "
+                                  "(create the file with it: TrajectoryWriter(optional_fields=...))")
+            raise VitflyError(f"{self.path}: the file holds {lacking[0]} for every trajectory; the record lacks it")
         rows = rec.row_arrays()
         meta = rec.traj_row()
         t = rec.length
@@ -667,7 +760,9 @@ class TrajectoryWriter:
 def _check_appendable(f: h5py.File, path: Path) -> None:
     """Appending needs this writer's layout: resizable datasets and fixed-length env names (SWMR writers cannot
     grow variable-length heaps safely). Files written by other tools may have neither; they stay readable."""
-    names = [*ROW_FIELDS, "traj_offsets", *(f"trajectories/{n}" for n in TRAJ_FIELDS)]
+    optional = optional_fields_of(f)
+    names = [*ROW_FIELDS, *(k for k in OPTIONAL_ROW_FIELDS if k in optional), "traj_offsets",
+             *(f"trajectories/{n}" for n in (*TRAJ_FIELDS, *(k for k in OPTIONAL_TRAJ_FIELDS if k in optional)))]
     for name in names:
         if f[name].maxshape[0] is not None:
             raise VitflyError(
@@ -696,6 +791,9 @@ __all__ = [
     "DEFAULT_DEPTH_MAX_M",
     "DEPTH_STORAGE",
     "IMAGE_SHAPE",
+    "OPTIONAL_FIELDS",
+    "OPTIONAL_ROW_FIELDS",
+    "OPTIONAL_TRAJ_FIELDS",
     "ROW_FIELDS",
     "SCHEMA_NAME",
     "SCHEMA_VERSION",
@@ -709,6 +807,7 @@ __all__ = [
     "depth_storage_of",
     "encode_depth",
     "open_trajectories",
+    "optional_fields_of",
     "read_sensor_attrs",
     "sensor_attrs",
     "validate_file",

@@ -13,12 +13,13 @@ from vitfly.sim.collision import ContactChecker, signed_distances
 from vitfly.sim.controller import ControllerGains, velocity_control
 from vitfly.sim.expert import ExpertConfig, ExpertObstacles, expert_command
 from vitfly.sim.physics import PHYSICS_BACKENDS, Fleet, make_fleet, resolve_physics
-from vitfly.sim.policies import BUILTIN_POLICIES, ExpertPolicy, StraightPolicy, make_builtin_policy
+from vitfly.sim.policies import BUILTIN_POLICIES, ExpertPolicy, MixturePolicy, StraightPolicy, make_builtin_policy
 from vitfly.sim.quadrotor import Airframe, DroneState
 from vitfly.sim.rollout import (
     EpisodeLog,
     EpisodeResult,
     EpisodeSummary,
+    LabelledCommands,
     Observation,
     Policy,
     RolloutConfig,
@@ -44,6 +45,8 @@ __all__ = [
     "ExpertObstacles",
     "ExpertPolicy",
     "Fleet",
+    "LabelledCommands",
+    "MixturePolicy",
     "Observation",
     "PHYSICS_BACKENDS",
     "PRESETS",

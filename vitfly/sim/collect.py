@@ -252,7 +252,7 @@ def _die_with_parent() -> None:
             ctypes.CDLL(None, use_errno=True).prctl(1, signal.SIGKILL)  # PR_SET_PDEATHSIG
 
 
-def _start_pool(workers: int) -> ProcessPoolExecutor | None:
+def start_pool(workers: int) -> ProcessPoolExecutor | None:
     """Worker processes for ``workers`` > 1, all started now.
 
     Called before any HDF5 file is opened and before the progress bar's thread starts, so on Linux
@@ -266,7 +266,7 @@ def _start_pool(workers: int) -> ProcessPoolExecutor | None:
     return pool
 
 
-def _ordered_records(
+def ordered_records(
     config: CollectConfig, indices: list[int], pool: ProcessPoolExecutor | None
 ) -> Iterator[TrajectoryRecord]:
     """Records for ``indices`` in index order, flown here or by the pool's workers."""
@@ -299,7 +299,7 @@ def collect(config: CollectConfig, out: str | os.PathLike, progress: bool = True
     config = dataclasses.replace(config, physics=resolve_physics(config.physics))  # the dataset names it
     meta = {"made_by": "vitfly collect", "collect": config.content_key()}
     start = time.perf_counter()
-    pool = _start_pool(config.workers)
+    pool = start_pool(config.workers)
     try:
         return _collect_into(config, out, meta, pool, progress, start)
     finally:
@@ -351,7 +351,7 @@ def _collect_into(config: CollectConfig, out: Path, meta: dict, pool, progress: 
             disable=not progress,
         ) as bar:
             task = bar.add_task(config.env, total=config.trajectories, completed=done, frames=frames)
-            for rec in _ordered_records(config, todo, pool):
+            for rec in ordered_records(config, todo, pool):
                 writer.append(rec)
                 new += 1
                 frames += rec.length

@@ -17,7 +17,10 @@ Example::
 
 A policy is any object with ``reset(num_envs)`` and ``__call__(obs) -> (N, 3)`` world-frame
 velocity commands in m/s (see :class:`Policy`). A policy that sets ``needs_depth = False`` (the
-expert, ``straight``) skips rendering unless ``record_depth`` asks for the frames anyway.
+expert, ``straight``) skips rendering unless ``record_depth`` asks for the frames anyway. A policy
+may instead return :class:`LabelledCommands`: the commands to fly plus a label per env (what a
+teacher would have commanded, e.g. the expert while a student flies); the engine flies the former
+and logs both (``EpisodeLog.command`` and ``EpisodeLog.label``).
 """
 
 from __future__ import annotations
@@ -103,9 +106,19 @@ class Observation:
     scenes: list[Scene] | None = None
 
 
+@dataclass
+class LabelledCommands:
+    """What a labelling policy returns for all N envs (world frame, m/s): ``command`` (N, 3), flown;
+    ``label`` (N, 3), the teacher's command for the same observation (logged, not flown)."""
+
+    command: np.ndarray
+    label: np.ndarray
+
+
 @runtime_checkable
 class Policy(Protocol):
-    """Maps a batched observation to world-frame velocity commands (N, 3) in m/s.
+    """Maps a batched observation to world-frame velocity commands (N, 3) in m/s (or to
+    :class:`LabelledCommands`: commands to fly and a label for each).
 
     ``reset(num_envs)`` is called once before the first tick of a batch (clear recurrent state).
     Optional attribute ``needs_depth: bool`` (default True): False lets the engine skip rendering.
@@ -121,9 +134,10 @@ class EpisodeLog:
     """Per control tick, T ticks (world frame, SI units).
 
     time (T,) s; position (T, 3) m; velocity (T, 3) m/s; quat (T, 4) (w, x, y, z); command (T, 3)
-    m/s, the policy's output at that tick; contact (T,) bool, true when the drone touched an
+    m/s, the command flown at that tick; contact (T,) bool, true when the drone touched an
     obstacle at any physics step while that command was applied; depth (T, H, W) float32 in [0, 1]
-    when recorded (the frame the policy saw), else None.
+    when recorded (the frame the policy saw), else None; label (T, 3) m/s, the label the policy
+    gave with its command (:class:`LabelledCommands`), else None.
     """
 
     time: np.ndarray
@@ -133,6 +147,7 @@ class EpisodeLog:
     command: np.ndarray
     contact: np.ndarray
     depth: np.ndarray | None = None
+    label: np.ndarray | None = None
 
     def __len__(self) -> int:
         return len(self.time)
@@ -178,7 +193,9 @@ class _EnvTracker:
         self.contact = ContactChecker(scene, cfg.task.body_radius_m)
         self.timeout_s = cfg.task.timeout_for(speed)
         self.obstacles = scene.expert_obstacles()
-        self.rows: dict[str, list] = {k: [] for k in ("time", "position", "velocity", "quat", "command", "contact")}
+        self.rows: dict[str, list] = {
+            k: [] for k in ("time", "position", "velocity", "quat", "command", "contact", "label")
+        }
         self.frames: list[np.ndarray] = []
         self.in_contact = False
         self.tick_contact = False
@@ -229,7 +246,13 @@ def run_episodes(
             # 1. observe all envs, 2. one batched policy call
             active = np.array([e.end_reason is None for e in envs])
             obs = _observe(states, envs, active, speed_arr, time_s, tick, camera, rngs, needs_depth, cfg)
-            commands = np.asarray(policy(obs), dtype=np.float64)
+            out = policy(obs)
+            labels = None
+            if isinstance(out, LabelledCommands):
+                out, labels = out.command, np.asarray(out.label, dtype=np.float64)
+                if labels.shape != (n, 3) or not np.all(np.isfinite(labels[active])):
+                    raise ValueError(f"policy returned labels of shape {labels.shape} (expected ({n}, 3), finite)")
+            commands = np.asarray(out, dtype=np.float64)
             if commands.shape != (n, 3) or not np.all(np.isfinite(commands[active])):
                 raise ValueError(f"policy returned commands of shape {commands.shape} (expected ({n}, 3), finite)")
             for i, e in enumerate(envs):
@@ -252,6 +275,8 @@ def run_episodes(
                 if not active[i]:
                     continue
                 e.rows["command"].append(commands[i].copy())
+                if labels is not None:
+                    e.rows["label"].append(labels[i].copy())
                 e.rows["contact"].append(e.tick_contact)
                 if e.end_reason is None and time_s >= e.timeout_s - 1e-9:
                     e.end_reason, e.end_time, e.final_position = "timeout", time_s, states[i].position
@@ -323,6 +348,7 @@ def _finish(e: _EnvTracker, dt: float) -> EpisodeResult:
         command=np.asarray(rows["command"], dtype=np.float64).reshape(-1, 3),
         contact=np.asarray(rows["contact"], dtype=bool),
         depth=np.stack(e.frames) if e.frames else None,
+        label=_labels(rows["label"], len(rows["command"])),
     )
     reached = e.end_reason == "goal"
     summary = EpisodeSummary(
@@ -339,3 +365,12 @@ def _finish(e: _EnvTracker, dt: float) -> EpisodeResult:
         final_position=tuple(float(v) for v in e.final_position),
     )
     return EpisodeResult(scene=e.scene, log=log, summary=summary)
+
+
+def _labels(rows: list, ticks: int) -> np.ndarray | None:
+    """The episode's labels (T, 3), or None when the policy gave none; a policy must label every tick or none."""
+    if not rows:
+        return None
+    if len(rows) != ticks:
+        raise ValueError(f"the policy labelled {len(rows)} of {ticks} ticks; label every tick or none")
+    return np.asarray(rows, dtype=np.float64).reshape(-1, 3)

@@ -299,7 +299,11 @@ class PolicyModule(L.LightningModule):
         loss_sum = torch.zeros((), device=batch["mask"].device)
         n_valid = 0
         tuner = self._thread_tuner
+        max_steps = self.trainer.max_steps
         for chunk, weight in self.rank_chunks(batch):
+            # max_steps counts optimiser steps, several per batch here: stop inside the batch to end on the dot
+            if 0 <= max_steps <= self.trainer.global_step:
+                break
             if tuner is not None:
                 tuner.before_step()
             if chunk is None:  # DDP: this rank's batch has ended, another rank's has not

@@ -1,0 +1,34 @@
+"""``vitfly dagger --config configs/dagger.yaml [--preset tiny|laptop|paper]``: DAgger with the privileged expert."""
+
+from __future__ import annotations
+
+import argparse
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    from vitfly.workflows.dagger import STAGE_NAMES_HELP
+
+    parser.add_argument("--config", default="configs/dagger.yaml", help="dagger YAML")
+    parser.add_argument("--preset", help="a section under 'presets' in the YAML: tiny (CI, under a minute), laptop "
+                        "(ConvNet, ~30-45 min on 2 CPU cores), paper (ViT+LSTM at the paper's data scale, a GPU)")
+    parser.add_argument("--model", help="architecture to train (overrides train.model), e.g. convnet or vit_lstm")
+    parser.add_argument("--out", help="run directory (data/, train/, eval/, paths/, manifests/, dagger.md)")
+    parser.add_argument("--rounds", type=int, help="DAgger rounds after round 0 (overrides schedule.rounds)")
+    parser.add_argument("--threads", type=int,
+                        help="torch threads for training, the students' flights and the evaluation (0: all cores)")
+    parser.add_argument("--stop-after", metavar="STAGE",
+                        help=f"stop after this stage ({STAGE_NAMES_HELP}); rerun without it to go on")
+    parser.add_argument("--no-progress", action="store_true", help="no progress bars")
+
+
+def run(args: argparse.Namespace) -> int:
+    from vitfly.workflows.dagger import run_dagger
+    from vitfly.workflows.dagger_config import load_dagger_config
+
+    overrides = {"out": args.out, "threads": args.threads, "train": {"model": args.model},
+                 "schedule": {"rounds": args.rounds}}
+    if args.threads:
+        overrides["evaluate"] = {"threads": args.threads}
+    cfg = load_dagger_config(args.config, args.preset, overrides)
+    run_dagger(cfg, args.stop_after, progress=not args.no_progress)
+    return 0
