@@ -215,7 +215,8 @@ class TrajectoryRecord:
         row = {
             "env": self.env.encode(),
             "seed": int(self.seed),
-            "desired_speed": float(speed if speed.ndim == 0 else speed.mean()),
+            # float64 mean: a constant float32 speed read back from a file is written back unchanged
+            "desired_speed": float(speed if speed.ndim == 0 else speed.mean(dtype=np.float64)),
             "n_collisions": int(self.n_collisions),
             "success": bool(self.success),
         }

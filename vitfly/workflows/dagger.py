@@ -17,7 +17,7 @@ trajectories (round 0's), only the data differ. Every round's students fly the h
 Layout of ``OUT``::
 
     data/dagger.h5, data/bc.h5       the aggregated datasets (appends are atomic per trajectory)
-    train/r0, train/dagger-rI, train/bc-rI   checkpoints (each round continues from the previous last.ckpt)
+    train/r0, train/dagger-rI, train/bc-rI   runs; checkpoints/final.ckpt: the weights each ended with
     eval/trials.jsonl                every round's students and the baselines on the same scenes
     paths/trials.jsonl               repeats of one evaluation scene by the last round's students
     manifests/<stage>.json           what each stage was run with (its fingerprint) and what it produced
@@ -26,7 +26,7 @@ Layout of ``OUT``::
 Resuming: every stage is recorded in ``manifests/<stage>.json`` with the fingerprint of everything that
 decides its result (its settings and the fingerprints of the stages it builds on). A rerun skips a stage
 whose manifest says done with the same fingerprint, resumes one that was interrupted (flights already
-committed to the dataset are not flown again; training resumes from ``last.ckpt``; evaluation per trial),
+committed to the dataset are not flown again; training resumes from its ``last.ckpt``; evaluation per trial),
 recomputes a training or evaluation stage whose settings changed, and refuses (one line, before anything
 runs) when a round's flights in a dataset were made with other settings than the config now gives them:
 they are never silently reused.
@@ -54,6 +54,7 @@ from vitfly.workflows.dagger_config import DaggerConfig, base_collect, eval_stag
 DAGGER_DATA = "data/dagger.h5"
 BC_DATA = "data/bc.h5"
 DAGGER_FIELDS = ("velocity_cmd_executed", "dagger_round", "dagger_beta")
+FINAL_NAME = "final.ckpt"  # under train/<run>/checkpoints
 
 
 @dataclass(frozen=True)
@@ -80,8 +81,27 @@ def train_dir(cfg: DaggerConfig, round_index: int, baseline: bool = False) -> Pa
     return cfg.out_dir / "train" / name
 
 
-def last_checkpoint(cfg: DaggerConfig, round_index: int, baseline: bool = False) -> Path:
-    return train_dir(cfg, round_index, baseline) / "checkpoints" / "last.ckpt"
+def final_checkpoint(cfg: DaggerConfig, round_index: int, baseline: bool = False) -> Path:
+    """The weights a round's training ended with (the next round starts from them, evaluation flies them)."""
+    return train_dir(cfg, round_index, baseline) / "checkpoints" / FINAL_NAME
+
+
+def save_final_callback(path: Path):
+    """A Lightning callback that writes the weights the training ended with to ``path`` (atomically).
+
+    ``last.ckpt`` is not that: Lightning's ModelCheckpoint refreshes it only when the monitored validation loss
+    improves, and not at all when ``max_steps`` ends an epoch early.
+    """
+    from lightning.pytorch.callbacks import Callback
+
+    from vitfly.atomic import atomic_path
+
+    class SaveFinal(Callback):
+        def on_train_end(self, trainer, pl_module) -> None:
+            with atomic_path(path) as tmp:
+                trainer.save_checkpoint(tmp)
+
+    return SaveFinal()
 
 
 def _file_hash(path: str | None) -> str | None:
@@ -432,11 +452,11 @@ def _cut(rec, max_rows: int):
 
 def stage_train(cfg: DaggerConfig, stage: Stage, baseline: bool, progress: bool = True,
                 steps: int | None = None) -> dict:
-    """Round 0: train from scratch (or ``train.init_checkpoint``); round i: fine-tune round i-1's last.ckpt.
+    """Round 0: train from scratch (or ``train.init_checkpoint``); round i: fine-tune round i-1's final weights.
     ``steps`` (the baseline): exactly this many optimiser steps instead of ``finetune_epochs`` epochs."""
     import torch
 
-    from vitfly.training import train_policy
+    from vitfly.training import finish_wandb, train_policy
 
     r = stage.round
     data = data_path(cfg, baseline)
@@ -446,10 +466,11 @@ def stage_train(cfg: DaggerConfig, stage: Stage, baseline: bool, progress: bool 
                           "missing (deleted?); it would train on later rounds' data: use a new --out")
     settings = train_settings(cfg, r)
     out = train_dir(cfg, r, baseline)
+    ckpt = final_checkpoint(cfg, r, baseline)
     if r == 0:
         init = cfg.train.init_checkpoint
     else:
-        init = str(last_checkpoint(cfg, r - 1, baseline and r > 1))
+        init = str(final_checkpoint(cfg, r - 1, baseline and r > 1))
     data_kwargs = dict(settings["data_kwargs"])
     if r > 0:  # every round validates on round 0's held-out flights; the new ones go to training
         data_kwargs["split_file"] = str(train_dir(cfg, 0) / "split.json")
@@ -466,13 +487,10 @@ def stage_train(cfg: DaggerConfig, stage: Stage, baseline: bool, progress: bool 
     train_policy(data, settings["model"], out, use_state=settings["use_state"], max_epochs=max_epochs,
                  batch_size=settings["batch_size"], val_fraction=settings["val_fraction"], seed=settings["seed"],
                  policy_kwargs=policy_kwargs, data_kwargs=data_kwargs, trainer_kwargs=trainer_kwargs,
-                 progress_bar=progress, init_weights=init)
-    from vitfly.training import finish_wandb
-
+                 progress_bar=progress, init_weights=init, callbacks=[save_final_callback(ckpt)])
     finish_wandb()
-    ckpt = out / "checkpoints" / "last.ckpt"
     if not ckpt.exists():
-        raise VitflyError(f"{out}: training ended without writing checkpoints/last.ckpt")
+        raise VitflyError(f"{out}: training ended without writing {ckpt}")
     saved = torch.load(ckpt, map_location="cpu", weights_only=True)
     frames, _, _ = _frames(data, r)
     result = {"checkpoint": str(ckpt), "steps": int(saved["global_step"]), "frames": frames,
@@ -489,9 +507,9 @@ def stage_train(cfg: DaggerConfig, stage: Stage, baseline: bool, progress: bool 
 
 def students(cfg: DaggerConfig, r: int) -> list[tuple[str, str]]:
     """(checkpoint, label) of round r's students: the shared one in round 0, else DAgger's and the baseline's."""
-    out = [(str(last_checkpoint(cfg, r)), student_label(r, False))]
+    out = [(str(final_checkpoint(cfg, r)), student_label(r, False))]
     if r and cfg.baseline:
-        out.append((str(last_checkpoint(cfg, r, True)), student_label(r, True)))
+        out.append((str(final_checkpoint(cfg, r, True)), student_label(r, True)))
     return out
 
 

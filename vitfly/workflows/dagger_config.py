@@ -60,7 +60,7 @@ class DaggerSchedule:
 
 @dataclass
 class DaggerTrain:
-    """Round 0 trains from scratch (or from ``init_checkpoint``); round i >= 1 fine-tunes round i-1's last.ckpt."""
+    """Round 0 trains from scratch (or from ``init_checkpoint``); round i >= 1 fine-tunes round i-1's final weights."""
 
     model: str = "convnet"
     use_state: bool = True
@@ -258,6 +258,7 @@ def eval_stage(cfg: DaggerConfig):
     from vitfly.workflows.pipeline import EvalStage
 
     e = cfg.evaluate
+    # the students fly their evaluation with the physics back end their training flights used
     return EvalStage(env=list(e.env), preset=e.preset, speeds=list(e.speeds), trials=e.trials, seed=e.seed,
                      num_envs=e.num_envs, workers=e.workers, threads=e.threads, backend=e.backend,
-                     timeout_s=e.timeout_s, device=e.device)
+                     timeout_s=e.timeout_s, device=e.device, physics=base_collect(cfg).physics)
