@@ -18,12 +18,16 @@ CHECKPOINT_DIR = "checkpoints"
 
 
 def checkpoint_defaults() -> dict[str, Any]:
-    """ModelCheckpoint arguments for best + last checkpoints with fixed names (best.ckpt, last.ckpt)."""
+    """ModelCheckpoint arguments for the best checkpoint, best.ckpt (fixed name).
+
+    last.ckpt comes from a second callback, ``vitfly.training_checkpoints.LastCheckpoint``: Lightning's own
+    ``save_last`` refreshes it only when the validation loss improves.
+    """
     return {
         "monitor": MONITOR,
         "mode": "min",
         "save_top_k": 1,
-        "save_last": True,
+        "save_last": False,
         "filename": BEST_NAME,
         "auto_insert_metric_name": False,
         "enable_version_counter": False,  # overwrite best.ckpt instead of writing best-v1.ckpt
@@ -78,6 +82,7 @@ def train_policy(
     from lightning.pytorch.loggers import CSVLogger
 
     from vitfly.datamodules.datamodule import TrajectoryDataModule
+    from vitfly.training_checkpoints import LastCheckpoint
     from vitfly.zoo.policy import create_policy
 
     out_dir = Path(out_dir)
@@ -94,7 +99,9 @@ def train_policy(
     )
     ckpt_dir = out_dir / CHECKPOINT_DIR
     checkpoint = ModelCheckpoint(dirpath=ckpt_dir, **checkpoint_defaults())
-    callbacks = [checkpoint] + ([RichProgressBar()] if progress_bar else []) + list(callbacks or [])
+    # best first: Trainer.checkpoint_callback (ckpt_path="best") is the first ModelCheckpoint
+    bar = [RichProgressBar()] if progress_bar else []
+    callbacks = [checkpoint, LastCheckpoint(ckpt_dir), *bar, *(callbacks or [])]
     trainer = L.Trainer(
         max_epochs=max_epochs,
         default_root_dir=out_dir,

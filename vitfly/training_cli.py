@@ -30,6 +30,7 @@ from lightning.pytorch.cli import LightningArgumentParser, LightningCLI
 
 from vitfly.datamodules.datamodule import TrajectoryDataModule
 from vitfly.training import checkpoint_defaults, default_wandb_offline, finish_wandb
+from vitfly.training_checkpoints import LastCheckpoint
 from vitfly.zoo.checkpoint import network_hparams
 from vitfly.zoo.legacy import read_torch_file
 from vitfly.zoo.policy import PolicyModule, policy_class, register_policy_classes
@@ -45,7 +46,10 @@ DEFAULT_LOGGER = {
 
 
 class VitflyCLI(LightningCLI):
-    """LightningCLI with vitfly's defaults: forced best/last checkpoints, CSV logger, rich progress bar."""
+    """LightningCLI with vitfly's defaults: forced best/last checkpoints, CSV logger, rich progress bar.
+
+    ``checkpoint.*`` configures the best checkpoint; last.ckpt (``LastCheckpoint``) is added beside it.
+    """
 
     def add_arguments_to_parser(self, parser: LightningArgumentParser) -> None:
         parser.add_lightning_class_args(ModelCheckpoint, "checkpoint")
@@ -103,6 +107,10 @@ class VitflyCLI(LightningCLI):
     def _instantiate_trainer(self, config: dict[str, Any], callbacks: list) -> Any:
         listed = config.get("callbacks") or []
         listed = listed if isinstance(listed, list) else [listed]
+        if not any(isinstance(cb, LastCheckpoint) for cb in [*listed, *callbacks]):
+            # last.ckpt beside best.ckpt (a --checkpoint.dirpath moves both); it runs after the best one
+            best = next((cb for cb in callbacks if isinstance(cb, ModelCheckpoint)), None)
+            callbacks = [*callbacks, LastCheckpoint(best.dirpath if best is not None else None)]
         has_bar = any(isinstance(cb, ProgressBar) for cb in [*listed, *callbacks])
         if config.get("enable_progress_bar", True) is not False and not has_bar:
             callbacks = [*callbacks, RichProgressBar()]

@@ -89,8 +89,8 @@ def final_checkpoint(cfg: DaggerConfig, round_index: int, baseline: bool = False
 def save_final_callback(path: Path):
     """A Lightning callback that writes the weights the training ended with to ``path`` (atomically).
 
-    ``last.ckpt`` is not that: Lightning's ModelCheckpoint refreshes it only when the monitored validation loss
-    improves, and not at all when ``max_steps`` ends an epoch early.
+    ``last.ckpt`` now holds the same weights (``vitfly.training_checkpoints.LastCheckpoint``); ``final.ckpt``
+    stays the name rounds, manifests and reports refer to, written once when the training ends.
     """
     from lightning.pytorch.callbacks import Callback
 
