@@ -151,7 +151,10 @@ def _run(args: list[str], timeout_s: float) -> subprocess.CompletedProcess:
 def test_vitfly_fit_ddp_on_two_cpu_ranks_trains_each_rank_on_its_own_half(tmp_path):
     # lengths 9..12 with 4-step chunks: every batch is 3 optimiser steps (ceil(L / 4) = 3 for 9 <= L <= 12)
     data = write_dataset(tmp_path / "d.h5", [9, 12, 10, 11, 9, 12, 10, 11, 10, 12])
-    probe = ["--model.init_args.tbptt_steps", "4", "--trainer.callbacks+=ddp_probe.SeenBatches"]
+    # 2 of the 10 trajectories held out, whatever the shipped recipe's val_fraction; no mirroring (the probe
+    # compares the trajectories each rank saw)
+    probe = ["--model.init_args.tbptt_steps", "4", "--data.val_fraction", "0.2", "--data.mirror_prob", "0.0",
+             "--trainer.callbacks+=ddp_probe.SeenBatches"]
     ddp_args = fit_args(data, tmp_path / "ddp", *probe, "--trainer.strategy", "ddp", "--trainer.devices", "2",
                         "--trainer.accelerator", "cpu")  # fmt: skip
     done = _run(ddp_args, timeout_s=300)  # about 20 s on a quiet 2-core machine

@@ -15,9 +15,6 @@ import pytest
 REPO = Path(__file__).resolve().parents[1]
 PAGES = [REPO / "README.md", *sorted((REPO / "docs").glob("*.md"))]
 
-# Pages that are being written elsewhere and are linked already. A link to one of these is skipped while the
-# file does not exist; remove its entry once the file exists (it is then checked like any other).
-PENDING = {"docs/results.md", "docs/dagger.md"}
 
 LINK = re.compile(r"!?\[(?:[^\[\]]|\[[^\]]*\])*\]\(\s*<?([^)\s>]+)>?(?:\s+\"[^\"]*\")?\s*\)")
 FENCE = re.compile(r"^(```|~~~).*?^\1[^\n]*$", re.S | re.M)
@@ -57,8 +54,6 @@ def check_page(page: Path, root: Path = REPO) -> list[str]:
         path_part, _, anchor = target.partition("#")
         file = (page.parent / path_part).resolve() if path_part else page
         rel = file.relative_to(root).as_posix() if file.is_relative_to(root) else str(file)
-        if rel in PENDING and not file.exists():
-            continue
         if not file.exists():
             problems.append(f"{page.relative_to(root)}: link {target!r}: {rel} does not exist")
         elif anchor and file.suffix == ".md" and anchor not in heading_ids(file.read_text(encoding="utf-8")):
@@ -79,9 +74,10 @@ def test_the_checker_sees_what_it_should(tmp_path):
     page.write_text(
         "[ok](docs/a.md) [ok anchor](docs/a.md#the-main-job-run-it) [self](#top) ![img](docs/missing.png)\n"
         "[bad anchor](docs/a.md#nope) [web](https://example.com/x.md) `[in code](docs/nothing.md)`\n"
-        "[pending](docs/results.md)\n\n# Top\n\n```\n[in a block](docs/nothing.md)\n```\n"
+        "[gone](docs/results.md)\n\n# Top\n\n```\n[in a block](docs/nothing.md)\n```\n"
     )
     assert check_page(page, root=tmp_path) == [
         "README.md: link 'docs/missing.png': docs/missing.png does not exist",
         "README.md: link 'docs/a.md#nope': no heading #nope in docs/a.md",
+        "README.md: link 'docs/results.md': docs/results.md does not exist",
     ]

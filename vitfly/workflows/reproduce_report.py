@@ -205,10 +205,13 @@ def results_markdown(cfg: ReproduceConfig, findings_md: str, files: dict[str, Pa
     figure_lines = [f"- {k.replace('_', ' ')}: ![{k}]({v})" for k, v in rel.items()]
     lateral_lines = ["| policy | max mean lateral deviation (m) |", "|---|---:|",
                      *(f"| {p} | {v:.2f} |" for p, v in lateral.items())] if lateral else ["(paths not flown)"]
+    # the shipped weights were trained elsewhere: their datasets are in the training table, not cfg.data
+    source = "Weights from the manifest (training table below)" if cfg.train.source == "pretrained" else \
+        f"Dataset `{cfg.data}`"
     return "\n".join([
         f"# vitfly reproduce: the paper's results section (preset `{cfg.preset}`)",
         "",
-        f"Made by `vitfly reproduce --config ... --preset {cfg.preset}` into `{cfg.out}`. Dataset `{cfg.data}`; "
+        f"Made by `vitfly reproduce --config ... --preset {cfg.preset}` into `{cfg.out}`. {source}; "
         f"scenes of evaluation seed {e.seed} (preset {e.preset}), which the collection never used. Trials per "
         f"speed: spheres {e.spheres_trials}, trees {e.trees_trials}, window {e.window_trials} (at "
         f"{', '.join(f'{s:g}' for s in e.window_speeds)} m/s), ablation {e.ablation_trials}. Success is the "
