@@ -109,6 +109,59 @@ class ConvMixFFN(nn.Module):
         return y.permute(0, 2, 3, 1).reshape(-1, h * w, c)
 
 
+class FusedConvMixFFN(nn.Module):
+    """``MixFFN`` with mlp1 multiplied into the grouped convolution: one dense 3x3 convolution C -> C*E.
+
+    Nothing non-linear sits between mlp1 and the grouped convolution, so per output channel o of group g
+    the pair is ``sum_taps W_g[tap] @ W1_g`` applied to the shifted tokens: a dense convolution of the
+    C-channel token grid. It has more products than the pair (C*9 per output against 1 + E*9), but it is
+    the shape int8 convolution kernels run fastest (``vitfly.deploy.quantize``: about 3x the float pair).
+    mlp1's bias goes through the grouped convolution's zero padding, so border pixels see fewer taps of it:
+    the convolution's bias is the interior value and ``border`` (H, W, C*E), zero inside, adds the rest. The
+    grid size is fixed at construction (the network's input size fixes it). Tokens stay channels-last.
+    """
+
+    def __init__(self, ffn: MixFFN, height: int, width: int, gelu: str = "none") -> None:
+        super().__init__()
+        self.gelu = gelu
+        depthwise = ffn.depthwise
+        hidden, per_group = depthwise.out_channels, depthwise.in_channels // depthwise.groups
+        channels = ffn.mlp1.in_features
+        with torch.no_grad():
+            w1 = ffn.mlp1.weight.reshape(depthwise.groups, per_group, channels)  # (groups, E in, C)
+            wd = depthwise.weight.reshape(depthwise.groups, per_group, per_group, 3, 3)  # (groups, E out, E in, 3, 3)
+            self.fused_conv = nn.Conv2d(channels, hidden, kernel_size=3, padding=1)
+            self.fused_conv.weight.copy_(torch.einsum("goiyx,gic->gocyx", wd, w1).reshape(hidden, channels, 3, 3))
+            b1_map = ffn.mlp1.bias.reshape(1, hidden, 1, 1).expand(1, hidden, height, width)
+            bias_map = F.conv2d(b1_map, depthwise.weight, depthwise.bias, padding=1, groups=depthwise.groups)[0]
+            interior = bias_map[:, height // 2, width // 2].clone()  # every tap inside the grid
+            self.fused_conv.bias.copy_(interior)
+        self.register_buffer("border", (bias_map - interior[:, None, None]).permute(1, 2, 0).contiguous())
+        self.mlp2 = ffn.mlp2
+
+    def forward(self, x: torch.Tensor, h: int, w: int) -> torch.Tensor:
+        n, length, c = x.shape
+        y = self.fused_conv(x.reshape(n, h, w, c).permute(0, 3, 1, 2)).permute(0, 2, 3, 1) + self.border
+        return self.mlp2(F.gelu(y, approximate=self.gelu).reshape(n, length, -1))
+
+
+def _conv_output_size(size: int, conv: nn.Conv2d, axis: int) -> int:
+    return (size + 2 * conv.padding[axis] - conv.kernel_size[axis]) // conv.stride[axis] + 1
+
+
+def fuse_mix_ffns(backbone: nn.Module, gelu: str = "tanh") -> None:
+    """Replace every mix-FFN of a ViT backbone (``encoder_blocks``) by ``FusedConvMixFFN``, in place, for the
+    network's 60 x 90 input."""
+    from vitfly.zoo.base import IMAGE_HEIGHT, IMAGE_WIDTH
+
+    h, w = IMAGE_HEIGHT, IMAGE_WIDTH
+    for stage in backbone.encoder_blocks:
+        conv = stage.patchMerge.cn1
+        h, w = _conv_output_size(h, conv, 0), _conv_output_size(w, conv, 1)
+        for i, ffn in enumerate(stage._ffn):
+            stage._ffn[i] = FusedConvMixFFN(ffn, h, w, gelu)
+
+
 class FoldedAttention(nn.Module):
     """``EfficientSelfAttention`` with the query scale and the output projection folded in.
 
@@ -327,16 +380,19 @@ def _replace_modules(module: nn.Module, gelu: str) -> None:
             _replace_modules(child, gelu)
 
 
-def inference_copy(net: nn.Module, approximate_gelu: bool = False) -> nn.Module:
+def inference_copy(net: nn.Module, approximate_gelu: bool = False, fuse_ffn: bool = False) -> nn.Module:
     """An eval-mode copy of ``net`` with the rewrites above; same call contract and outputs.
 
     ``approximate_gelu`` runs the mix-FFN's GELU as its tanh approximation (|error| < 5e-4; about 6 % of the
     ViT's time at batch 1 on CPU): a different function, for the int8 fast path whose commands are checked
-    against the exact network over recorded flights.
+    against the exact network over recorded flights. ``fuse_ffn`` gives the ViTs' mix-FFNs as one dense
+    convolution each (``FusedConvMixFFN``; the same function, for the int8 path's convolutions).
     """
     copy_ = copy.deepcopy(net).eval()
     if _FoldedConvNet.foldable(copy_):
         return _FoldedConvNet(copy_).eval()
+    if fuse_ffn and isinstance(copy_, (ViT, ViTLSTM)):
+        fuse_mix_ffns(copy_, "tanh" if approximate_gelu else "none")
     _replace_modules(copy_, "tanh" if approximate_gelu else "none")
     if isinstance(copy_, ViT):
         copy_ = _FoldedViT(copy_).eval()

@@ -18,6 +18,15 @@ weight-only ``MatMulNBits`` (8 and 4 bit, block 32 / 128) -- no faster than dyna
 accurate; bf16 -- ONNX Runtime has no bf16 CPU kernels on x86, and eager PyTorch in bf16 (autocast or bf16
 weights) is no faster than float32 eager at batch 1.
 
+The ViTs' mix-FFNs (their largest cost: a 3x3 convolution with 8-channel groups, which float32 kernels
+run at half efficiency) are a second, *static* int8 path, taken when the export is given calibration frames:
+``inference_copy(fuse_ffn=True)`` multiplies each mix-FFN's first Linear into its grouped convolution
+(``FusedConvMixFFN``, one dense 3x3 convolution, the same function), and ``_quantize_fused_convs`` runs it as
+ONNX Runtime's channels-last ``QLinearConv``, whose symmetric int8 kernel uses the dot-product instructions:
+about 90 us against about 300 us for the float pair per layer at batch 1. Its input and output ranges are
+fixed by calibration (``calibrate_ranges`` over recorded expert flights, widened by ``RANGE_MARGIN``); a
+frame far outside them saturates, which the command agreement over flights through other scenes checks.
+
 The quantised graph computes a different function; ``vitfly.eval.agreement`` measures how far its
 commands are from the float32 network's over recorded flights.
 """
@@ -27,14 +36,16 @@ from __future__ import annotations
 import tempfile
 from pathlib import Path
 
+import numpy as np
 import onnx
-from onnx import numpy_helper
+from onnx import helper, numpy_helper
 
 PRECISIONS = ("fp32", "int8")
 # architectures whose products stay float32 in the int8 path, and why (benchmarks/fast_path_agreement.py)
 FLOAT32_MODELS = {
     "vit": "its one large product (the decoder folded into the head, 4608 -> 256) in int8 moved the commands by "
-    "up to 0.2 m/s (2.3 deg) over recorded flights, above the 0.15 m/s tolerance",
+    "up to 0.24 m/s (2.5 deg) over recorded flights, above the 0.15 m/s tolerance (8-bit block-wise weights, "
+    "MatMulNBits, were no faster); its mix-FFN convolutions are int8 all the same (FusedConvMixFFN)",
 }
 # smaller products gain nothing from int8 at batch 1: the per-call input quantisation costs more than it saves
 MIN_WEIGHT_ELEMENTS = 16_384
@@ -79,13 +90,25 @@ def _gemms_as_matmuls(model: onnx.ModelProto, min_weight_elements: int) -> None:
     model.graph.node.extend(nodes)
 
 
-def quantize_int8(model_bytes: bytes, min_weight_elements: int = MIN_WEIGHT_ELEMENTS) -> bytes:
+def quantize_int8(
+    model_bytes: bytes,
+    min_weight_elements: int = MIN_WEIGHT_ELEMENTS,
+    calibration_depth: np.ndarray | None = None,
+) -> bytes:
     """The int8 version of an exported vitfly policy (its large products; none for ``FLOAT32_MODELS``);
-    metadata kept, plus ``vitfly.precision = int8`` and ``vitfly.int8_products`` (how many were quantised)."""
+    metadata kept, plus ``vitfly.precision = int8``, ``vitfly.int8_products`` (how many were quantised) and
+    ``vitfly.int8_convolutions``. The fused mix-FFN convolutions (``FusedConvMixFFN``), when the export has
+    them, need ``calibration_depth`` (N, 60, 90) frames in [0, 1] to fix their activation ranges."""
     from onnxruntime.quantization import QuantType, quantize_dynamic
 
     model = onnx.load_from_string(model_bytes)
     metadata = {p.key: p.value for p in model.metadata_props}
+    convs = _fused_convs(model)
+    ranges = {}
+    if convs:
+        if calibration_depth is None:
+            raise ValueError("this export has fused mix-FFN convolutions: give calibration_depth frames")
+        ranges = calibrate_ranges(model_bytes, calibration_depth, [t for c in convs for t in (c[1], c[2])])
     nodes = []
     if metadata.get("vitfly.model") not in FLOAT32_MODELS:
         _gemms_as_matmuls(model, min_weight_elements)
@@ -96,11 +119,132 @@ def quantize_int8(model_bytes: bytes, min_weight_elements: int = MIN_WEIGHT_ELEM
             quantize_dynamic(model, out, op_types_to_quantize=["MatMul", "Gemm"], nodes_to_quantize=nodes,
                              weight_type=QuantType.QInt8, per_channel=PER_CHANNEL, reduce_range=False)  # fmt: skip
             model = onnx.load(out)
-    onnx.checker.check_model(model)
+    if convs:
+        _quantize_fused_convs(model, ranges)
+    else:
+        onnx.checker.check_model(model)  # (the checker knows no com.microsoft operators)
     metadata["vitfly.precision"] = "int8"
     metadata["vitfly.int8_products"] = str(len(nodes))
+    metadata["vitfly.int8_convolutions"] = str(len(convs))
     del model.metadata_props[:]
     for key, value in metadata.items():
         entry = model.metadata_props.add()
         entry.key, entry.value = key, value
     return model.SerializeToString()
+
+
+# the exported name of FusedConvMixFFN's convolution weight (vitfly.deploy.optimize)
+FUSED_CONV_WEIGHT = "fused_conv.weight"
+# calibrated activation ranges are widened by this factor (about zero) against frames unlike the calibration's
+RANGE_MARGIN = 1.25
+
+
+def _fused_convs(model: onnx.ModelProto) -> list[tuple[onnx.NodeProto, str, str]]:
+    """(Conv node, its input tensor, its output tensor) of every fused mix-FFN convolution."""
+    return [
+        (node, node.input[0], node.output[0])
+        for node in model.graph.node
+        if node.op_type == "Conv" and node.input[1].endswith(FUSED_CONV_WEIGHT)
+    ]
+
+
+def calibrate_ranges(model_bytes: bytes, depth: np.ndarray, tensors: list[str]) -> dict[str, tuple[float, float]]:
+    """(min, max) of each of ``tensors`` over the frames ``depth`` (N, 60, 90), run one by one through the float
+    model at 5 m/s, level attitude, zero recurrent state (the encoder, where these tensors are, sees only depth)."""
+    import onnxruntime as ort
+
+    model = onnx.load_from_string(model_bytes)
+    del model.graph.output[:]
+    for name in tensors:
+        model.graph.output.append(helper.make_empty_tensor_value_info(name))
+    options = ort.SessionOptions()
+    options.intra_op_num_threads = 1
+    options.log_severity_level = 3
+    session = ort.InferenceSession(model.SerializeToString(), options, providers=["CPUExecutionProvider"])
+    depth = np.asarray(depth, dtype=np.float32)
+    if depth.ndim != 3 or len(depth) == 0:
+        raise ValueError(f"calibration depth: expected frames (N, 60, 90), got shape {depth.shape}")
+    feed = {"desired_speed": np.full((1, 1, 1), 5.0, np.float32), "quat": np.zeros((1, 1, 4), np.float32)}
+    feed["quat"][..., 0] = 1.0
+    for arg in session.get_inputs():
+        if arg.name in ("h0", "c0"):
+            feed[arg.name] = np.zeros([1 if isinstance(d, str) else d for d in arg.shape], np.float32)
+    low = dict.fromkeys(tensors, 0.0)
+    high = dict.fromkeys(tensors, 0.0)
+    for frame in depth:
+        feed["depth"] = frame.reshape(1, 1, 1, *frame.shape)
+        for name, value in zip(tensors, session.run(tensors, feed), strict=True):
+            low[name], high[name] = min(low[name], float(value.min())), max(high[name], float(value.max()))
+    return {name: (low[name], high[name]) for name in tensors}
+
+
+def _uint8_params(low: float, high: float, margin: float = RANGE_MARGIN) -> tuple[np.float32, np.uint8]:
+    """Scale and zero point of an asymmetric uint8 quantisation of [low, high] (always holding 0), widened."""
+    low, high = min(low, 0.0) * margin, max(high, 0.0) * margin
+    scale = max(high - low, 1e-8) / 255.0
+    return np.float32(scale), np.uint8(np.clip(round(-low / scale), 0, 255))
+
+
+def _quantize_fused_convs(model: onnx.ModelProto, ranges: dict[str, tuple[float, float]]) -> None:
+    """Each fused mix-FFN convolution as ONNX Runtime's channels-last int8 ``QLinearConv``, in place.
+
+    The exported pattern is ``Transpose(NHWC -> NCHW) -> Conv -> Transpose(NCHW -> NHWC)``; the
+    replacement reads and writes the channels-last tensors directly: ``QuantizeLinear`` (uint8, the
+    calibrated input range) -> ``QLinearConv`` (int8 weights, symmetric, one scale per output channel: the
+    kernel ONNX Runtime runs with int8 dot-product instructions) -> ``DequantizeLinear`` (the calibrated
+    output range). Accumulation is exact int32; the error is the rounding of inputs, weights and outputs.
+    """
+    inits = {init.name: init for init in model.graph.initializer}
+    producers = {out: node for node in model.graph.node for out in node.output}
+    consumers: dict[str, list[onnx.NodeProto]] = {}
+    for node in model.graph.node:
+        for name in node.input:
+            consumers.setdefault(name, []).append(node)
+    drop, replace = set(), {}
+    for index, (conv, x_name, y_name) in enumerate(_fused_convs(model)):
+        before, after = producers[x_name], consumers[y_name]
+        perm_in = [a.ints for a in before.attribute if a.name == "perm"]
+        if before.op_type != "Transpose" or list(perm_in[0]) != [0, 3, 1, 2] or len(consumers[x_name]) != 1:
+            raise ValueError(f"{conv.name}: expected a channels-last token grid transposed into the convolution")
+        if len(after) != 1 or after[0].op_type != "Transpose":
+            raise ValueError(f"{conv.name}: expected the convolution's output transposed back to channels-last")
+        attrs = {a.name: helper.get_attribute_value(a) for a in conv.attribute}
+        weight = numpy_helper.to_array(inits[conv.input[1]]).astype(np.float64)
+        bias = numpy_helper.to_array(inits[conv.input[2]]).astype(np.float64)
+        x_scale, x_zero = _uint8_params(*ranges[x_name])
+        y_scale, y_zero = _uint8_params(*ranges[y_name])
+        w_scale = np.maximum(np.abs(weight).reshape(len(weight), -1).max(axis=1), 1e-12) / 127.0
+        w_int8 = np.clip(np.round(weight / w_scale[:, None, None, None]), -127, 127).astype(np.int8)
+        b_int32 = np.round(bias / (float(x_scale) * w_scale)).astype(np.int32)
+        p = f"vitfly_int8_conv_{index}"
+        constants = {
+            f"{p}_x_scale": x_scale, f"{p}_x_zero": x_zero, f"{p}_w": w_int8,
+            f"{p}_w_scale": w_scale.astype(np.float32), f"{p}_w_zero": np.zeros(len(weight), np.int8),
+            f"{p}_y_scale": y_scale, f"{p}_y_zero": y_zero, f"{p}_b": b_int32,
+        }  # fmt: skip
+        model.graph.initializer.extend(numpy_helper.from_array(np.asarray(v), k) for k, v in constants.items())
+        conv_attrs = {k: attrs[k] for k in ("kernel_shape", "pads", "strides", "dilations") if k in attrs}
+        replace[id(conv)] = [
+            helper.make_node("QuantizeLinear", [before.input[0], f"{p}_x_scale", f"{p}_x_zero"], [f"{p}_xq"],
+                             name=f"{p}_quantize"),
+            helper.make_node("QLinearConv", [f"{p}_xq", f"{p}_x_scale", f"{p}_x_zero", f"{p}_w", f"{p}_w_scale",
+                                             f"{p}_w_zero", f"{p}_y_scale", f"{p}_y_zero", f"{p}_b"],
+                             [f"{p}_yq"], name=f"{p}_conv", domain="com.microsoft", channels_last=1, **conv_attrs),
+            helper.make_node("DequantizeLinear", [f"{p}_yq", f"{p}_y_scale", f"{p}_y_zero"], [after[0].output[0]],
+                             name=f"{p}_dequantize"),
+        ]  # fmt: skip
+        drop.update({id(before), id(after[0])})
+    nodes = []
+    for node in model.graph.node:
+        if id(node) in replace:
+            nodes.extend(replace[id(node)])
+        elif id(node) not in drop:
+            nodes.append(node)
+    del model.graph.node[:]
+    model.graph.node.extend(nodes)
+    used = {name for node in model.graph.node for name in node.input}
+    kept = [init for init in model.graph.initializer if init.name in used]
+    del model.graph.initializer[:]
+    model.graph.initializer.extend(kept)
+    if not any(op.domain == "com.microsoft" for op in model.opset_import):
+        model.opset_import.append(helper.make_opsetid("com.microsoft", 1))
