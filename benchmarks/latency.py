@@ -4,7 +4,7 @@ Every (model, back end) is built once (ONNX Runtime back ends exported and check
 int8 ViTs calibrated on recorded expert flights), then, model by model, timed with
 ``vitfly.eval.latency.time_interleaved``: batch 1, one thread, recurrent state carried, the back ends taking
 turns in blocks of ``--block`` calls (order reversed every other round) until each has ``--iters`` timed
-calls, every call timed on both clocks -- elapsed (wall) time, the paper's measure, and the thread's CPU
+calls, every call timed on both clocks -- elapsed (wall) time, the paper's measure, and the process's CPU
 time, which leaves out the time spent waiting for a core on a machine shared with other jobs. This is done
 ``--repeats`` times; each repeat gives a median per back end and a ratio to the original's median of the
 same repeat, and the table gives the median of those ratios with their spread (min-max over the repeats).

@@ -44,13 +44,13 @@ def test_fused_mix_ffn_is_the_same_function(channels, h, w):
     with torch.no_grad():  # large biases: mlp1's bias through the zero padding is what the border map carries
         ffn.mlp1.bias.uniform_(-2.0, 2.0)
         ffn.depthwise.bias.uniform_(-1.0, 1.0)
-    fused = FusedConvMixFFN(ffn, h, w).eval()
+    fused = FusedConvMixFFN(ffn).eval()
     x = torch.randn(2, h * w, channels)
     with torch.no_grad():
         torch.testing.assert_close(fused(x, h, w), _mix_ffn_by_hand(ffn, x, h, w), atol=2e-5, rtol=0)
-    border = fused.border.abs().sum(dim=-1)  # (H, W): zero where all nine taps are inside the grid
-    assert torch.all(border[1:-1, 1:-1] == 0) and torch.all(border[0] > 0) and torch.all(border[:, -1] > 0)
-    assert fused.fused_conv.weight.shape == (channels * 8, channels, 3, 3) and fused.fused_conv.groups == 1
+    # one dense convolution over the tokens, a channel of ones carrying mlp1's bias, three zero channels
+    assert fused.fused_conv.weight.shape == (channels * 8, channels + 4, 3, 3) and fused.fused_conv.groups == 1
+    assert torch.all(fused.fused_conv.weight[:, channels + 1 :] == 0)
 
 
 def test_uint8_quantisation_parameters_by_hand():

@@ -117,49 +117,47 @@ class FusedConvMixFFN(nn.Module):
     C-channel token grid. It has more products than the pair (C*9 per output against 1 + E*9), but it is
     the shape int8 convolution kernels run fastest (``vitfly.deploy.quantize``: about 3x the float pair).
     mlp1's bias goes through the grouped convolution's zero padding, so border pixels see fewer taps of it:
-    the convolution's bias is the interior value and ``border`` (H, W, C*E), zero inside, adds the rest. The
-    grid size is fixed at construction (the network's input size fixes it). Tokens stay channels-last.
+    it rides on an extra input channel of ones (zero-padded like the rest, so the border sees exactly the
+    taps it should), plus three zero channels: the int8 kernel wants input channels in multiples of 4.
+    Tokens stay channels-last.
     """
 
-    def __init__(self, ffn: MixFFN, height: int, width: int, gelu: str = "none") -> None:
+    EXTRA_CHANNELS = 4  # [ones, 0, 0, 0]
+
+    def __init__(self, ffn: MixFFN, gelu: str = "none") -> None:
         super().__init__()
         self.gelu = gelu
         depthwise = ffn.depthwise
-        hidden, per_group = depthwise.out_channels, depthwise.in_channels // depthwise.groups
+        groups, hidden = depthwise.groups, depthwise.out_channels
+        per_group = depthwise.in_channels // groups
         channels = ffn.mlp1.in_features
         with torch.no_grad():
-            w1 = ffn.mlp1.weight.reshape(depthwise.groups, per_group, channels)  # (groups, E in, C)
-            wd = depthwise.weight.reshape(depthwise.groups, per_group, per_group, 3, 3)  # (groups, E out, E in, 3, 3)
-            self.fused_conv = nn.Conv2d(channels, hidden, kernel_size=3, padding=1)
-            self.fused_conv.weight.copy_(torch.einsum("goiyx,gic->gocyx", wd, w1).reshape(hidden, channels, 3, 3))
-            b1_map = ffn.mlp1.bias.reshape(1, hidden, 1, 1).expand(1, hidden, height, width)
-            bias_map = F.conv2d(b1_map, depthwise.weight, depthwise.bias, padding=1, groups=depthwise.groups)[0]
-            interior = bias_map[:, height // 2, width // 2].clone()  # every tap inside the grid
-            self.fused_conv.bias.copy_(interior)
-        self.register_buffer("border", (bias_map - interior[:, None, None]).permute(1, 2, 0).contiguous())
+            w1 = ffn.mlp1.weight.reshape(groups, per_group, channels)  # (groups, E in, C)
+            wd = depthwise.weight.reshape(groups, per_group, per_group, 3, 3)  # (groups, E out, E in, 3, 3)
+            b1 = ffn.mlp1.bias.reshape(groups, per_group)
+            weight = torch.zeros(hidden, channels + self.EXTRA_CHANNELS, 3, 3)
+            weight[:, :channels] = torch.einsum("goiyx,gic->gocyx", wd, w1).reshape(hidden, channels, 3, 3)
+            weight[:, channels] = torch.einsum("goiyx,gi->goyx", wd, b1).reshape(hidden, 3, 3)
+            self.fused_conv = nn.Conv2d(channels + self.EXTRA_CHANNELS, hidden, kernel_size=3, padding=1)
+            self.fused_conv.weight.copy_(weight)
+            self.fused_conv.bias.copy_(depthwise.bias)
+        extra = torch.zeros(1, 1, 1, self.EXTRA_CHANNELS)
+        extra[..., 0] = 1.0
+        self.register_buffer("extra", extra)
         self.mlp2 = ffn.mlp2
 
     def forward(self, x: torch.Tensor, h: int, w: int) -> torch.Tensor:
         n, length, c = x.shape
-        y = self.fused_conv(x.reshape(n, h, w, c).permute(0, 3, 1, 2)).permute(0, 2, 3, 1) + self.border
+        grid = torch.cat((x.reshape(n, h, w, c), self.extra.expand(n, h, w, -1)), dim=-1)
+        y = self.fused_conv(grid.permute(0, 3, 1, 2)).permute(0, 2, 3, 1)
         return self.mlp2(F.gelu(y, approximate=self.gelu).reshape(n, length, -1))
 
 
-def _conv_output_size(size: int, conv: nn.Conv2d, axis: int) -> int:
-    return (size + 2 * conv.padding[axis] - conv.kernel_size[axis]) // conv.stride[axis] + 1
-
-
 def fuse_mix_ffns(backbone: nn.Module, gelu: str = "tanh") -> None:
-    """Replace every mix-FFN of a ViT backbone (``encoder_blocks``) by ``FusedConvMixFFN``, in place, for the
-    network's 60 x 90 input."""
-    from vitfly.zoo.base import IMAGE_HEIGHT, IMAGE_WIDTH
-
-    h, w = IMAGE_HEIGHT, IMAGE_WIDTH
+    """Replace every mix-FFN of a ViT backbone (``encoder_blocks``) by ``FusedConvMixFFN``, in place."""
     for stage in backbone.encoder_blocks:
-        conv = stage.patchMerge.cn1
-        h, w = _conv_output_size(h, conv, 0), _conv_output_size(w, conv, 1)
         for i, ffn in enumerate(stage._ffn):
-            stage._ffn[i] = FusedConvMixFFN(ffn, h, w, gelu)
+            stage._ffn[i] = FusedConvMixFFN(ffn, gelu)
 
 
 class FoldedAttention(nn.Module):

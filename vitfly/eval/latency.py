@@ -71,9 +71,9 @@ class LatencyResult:
         return asdict(self)
 
 
-# "wall": elapsed time (the paper's measure); "cpu": CPU time of the calling thread, which leaves out the time
-# the thread waits for a core on a shared machine (one-thread runs only: other threads' work is not counted)
-CLOCKS: dict[str, Callable[[], float]] = {"wall": time.perf_counter, "cpu": time.thread_time}
+# "wall": elapsed time (the paper's measure); "cpu": CPU time of the process (all its threads), which leaves
+# out the time spent waiting for a core on a shared machine (meaningful for one-thread runs)
+CLOCKS: dict[str, Callable[[], float]] = {"wall": time.perf_counter, "cpu": time.process_time}
 
 
 def time_calls(
@@ -297,7 +297,7 @@ def prepare_original(module, name: str, threads: int = 1) -> PreparedStep:
 def time_step(prepared: PreparedStep, iters: int = 1000, warmup: int = 100, clock: str = "wall") -> LatencyResult:
     """Time a prepared model: ``warmup`` untimed ticks, then ``iters`` timed ones, torch on ``threads``.
 
-    ``clock`` "cpu" (the thread's CPU time) needs one thread on the CPU: VitflyError otherwise.
+    ``clock`` "cpu" (the process's CPU time) needs one thread on the CPU: VitflyError otherwise.
     """
     if clock == "cpu" and (prepared.threads != 1 or prepared.device != "cpu"):
         raise VitflyError("--clock cpu measures one thread on the CPU: use --threads 1 and the CPU")
