@@ -53,6 +53,21 @@ def test_fused_mix_ffn_is_the_same_function(channels, h, w):
     assert torch.all(fused.fused_conv.weight[:, channels + 1 :] == 0)
 
 
+def test_sigmoid_gelu_mix_ffn_by_hand():
+    torch.manual_seed(2)
+    ffn = MixFFN(4, expansion=8).eval()
+    quick = FusedConvMixFFN(ffn, gelu="quick").eval()
+    x = torch.randn(1, 5 * 6, 4)
+    with torch.no_grad():
+        y = x @ ffn.mlp1.weight.T + ffn.mlp1.bias
+        z = F.conv2d(y.transpose(1, 2).reshape(1, -1, 5, 6), ffn.depthwise.weight, ffn.depthwise.bias, padding=1,
+                     groups=4).flatten(2).transpose(1, 2)  # fmt: skip
+        expected = (z * torch.sigmoid(1.702 * z)) @ ffn.mlp2.weight.T + ffn.mlp2.bias
+        torch.testing.assert_close(quick(x, 5, 6), expected, atol=2e-5, rtol=0)
+        # and it is an approximation: not the exact mix-FFN
+        assert (quick(x, 5, 6) - _mix_ffn_by_hand(ffn, x, 5, 6)).abs().max() > 1e-4
+
+
 def test_uint8_quantisation_parameters_by_hand():
     # [-1, 3] without margin: scale 4 / 255, zero point round(1 / (4 / 255)) = round(63.75) = 64
     scale, zero = _uint8_params(-1.0, 3.0, margin=1.0)
@@ -96,9 +111,13 @@ def test_int8_vit_convolutions_fly_the_float_commands(flights, calibration, name
     model = onnx.load_from_string(data)
     ops = [n.op_type for n in model.graph.node]
     meta = {p.key: p.value for p in model.metadata_props}
-    # every mix-FFN (2 stages x 2 layers) is one int8 convolution; no float copy of them is left
-    assert ops.count("QLinearConv") == 4 and meta["vitfly.int8_convolutions"] == "4"
-    assert not any(i.name.endswith("fused_conv.weight") for i in model.graph.initializer)
+    # every mix-FFN (2 stages x 2 layers) is one int8 convolution; the ViT's stay uint8 through the sigmoid
+    # GELU and mlp2 (a second int8 convolution each); no float copy of them is left
+    quick = name == "vit"
+    convs = ops.count("QLinearConv")
+    assert convs == (8 if quick else 4) and meta["vitfly.int8_convolutions"] == str(convs)
+    assert ops.count("QLinearSigmoid") == ops.count("QLinearMul") == (4 if quick else 0)
+    assert not any(i.name.endswith(("fused_conv.weight", "fused_mlp2.weight")) for i in model.graph.initializer)
     reference = replay_commands(LearnedPolicy(net), flights)
     fast = LearnedPolicy(net, step_fn=OnnxPolicyRunner(data))
     agreement = compare_commands(reference, replay_commands(fast, flights))

@@ -26,6 +26,9 @@ ONNX Runtime's channels-last ``QLinearConv``, whose symmetric int8 kernel uses t
 about 90 us against about 300 us for the float pair per layer at batch 1. Its input and output ranges are
 fixed by calibration (``calibrate_ranges`` over recorded expert flights, widened by ``RANGE_MARGIN``); a
 frame far outside them saturates, which the command agreement over flights through other scenes checks.
+Where the mix-FFN takes GELU's sigmoid approximation (``QUICK_GELU_STAGES``), the chain stays uint8 from the
+convolution through the sigmoid (a table), the product and mlp2: the float GELU, its dequantisation and mlp2's
+float product were a third of the ViT's int8 time.
 
 The quantised graph computes a different function; ``vitfly.eval.agreement`` measures how far its
 commands are from the float32 network's over recorded flights.
@@ -34,6 +37,7 @@ commands are from the float32 network's over recorded flights.
 from __future__ import annotations
 
 import tempfile
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -102,12 +106,12 @@ def quantize_int8(
 
     model = onnx.load_from_string(model_bytes)
     metadata = {p.key: p.value for p in model.metadata_props}
-    convs = _fused_convs(model)
+    chains = _ffn_chains(model)
     ranges = {}
-    if convs:
+    if chains:
         if calibration_depth is None:
             raise ValueError("this export has fused mix-FFN convolutions: give calibration_depth frames")
-        ranges = calibrate_ranges(model_bytes, calibration_depth, [t for c in convs for t in (c[1], c[2])])
+        ranges = calibrate_ranges(model_bytes, calibration_depth, [t for c in chains for t in c.tensors()])
     nodes = []
     _gemms_as_matmuls(model, min_weight_elements)
     nodes = _large_products(model, min_weight_elements)
@@ -119,13 +123,13 @@ def quantize_int8(
             quantize_dynamic(model, out, op_types_to_quantize=["MatMul", "Gemm"], nodes_to_quantize=nodes,
                              weight_type=QuantType.QInt8, per_channel=PER_CHANNEL, reduce_range=False)  # fmt: skip
             model = onnx.load(out)
-    if convs:
+    if chains:
         _quantize_fused_convs(model, ranges)
     else:
         onnx.checker.check_model(model)  # (the checker knows no com.microsoft operators)
     metadata["vitfly.precision"] = "int8"
     metadata["vitfly.int8_products"] = str(len(nodes))
-    metadata["vitfly.int8_convolutions"] = str(len(convs))
+    metadata["vitfly.int8_convolutions"] = str(sum(1 if c.quick is None else 2 for c in chains))
     del model.metadata_props[:]
     for key, value in metadata.items():
         entry = model.metadata_props.add()
@@ -139,13 +143,66 @@ FUSED_CONV_WEIGHT = "fused_conv.weight"
 RANGE_MARGIN = 1.25
 
 
-def _fused_convs(model: onnx.ModelProto) -> list[tuple[onnx.NodeProto, str, str]]:
-    """(Conv node, its input tensor, its output tensor) of every fused mix-FFN convolution."""
-    return [
-        (node, node.input[0], node.output[0])
-        for node in model.graph.node
-        if node.op_type == "Conv" and node.input[1].endswith(FUSED_CONV_WEIGHT)
-    ]
+@dataclass
+class _FfnChain:
+    """One fused mix-FFN in the exported graph: ``before`` (Transpose NHWC -> NCHW) -> ``conv`` -> [``quick``:
+    Mul(y, 1.702) -> Sigmoid -> Mul(y, s) -> ``mlp2`` (1x1 Conv)] -> ``after`` (Transpose NCHW -> NHWC)."""
+
+    before: onnx.NodeProto
+    conv: onnx.NodeProto
+    after: onnx.NodeProto
+    quick: tuple[onnx.NodeProto, onnx.NodeProto, onnx.NodeProto, onnx.NodeProto] | None = None
+
+    def tensors(self) -> list[str]:
+        """The tensors whose ranges calibration fixes."""
+        if self.quick is None:
+            return [self.conv.input[0], self.conv.output[0]]
+        return [self.conv.input[0], self.conv.output[0], self.quick[2].output[0], self.quick[3].output[0]]
+
+
+def _ffn_chains(model: onnx.ModelProto) -> list[_FfnChain]:
+    """Every fused mix-FFN convolution (``FUSED_CONV_WEIGHT``) with the nodes around it."""
+    producers = {out: node for node in model.graph.node for out in node.output}
+    consumers: dict[str, list[onnx.NodeProto]] = {}
+    for node in model.graph.node:
+        for name in node.input:
+            consumers.setdefault(name, []).append(node)
+
+    def only(name: str, op_type: str, where: onnx.NodeProto) -> onnx.NodeProto:
+        found = consumers.get(name, [])
+        if len(found) != 1 or found[0].op_type != op_type:
+            raise ValueError(f"{where.name}: unexpected graph around a fused mix-FFN convolution")
+        return found[0]
+
+    chains = []
+    for conv in model.graph.node:
+        if conv.op_type != "Conv" or not conv.input[1].endswith(FUSED_CONV_WEIGHT):
+            continue
+        before = producers.get(conv.input[0])
+        perm = [list(a.ints) for a in before.attribute if a.name == "perm"] if before is not None else []
+        if before is None or before.op_type != "Transpose" or perm != [[0, 3, 1, 2]]:
+            raise ValueError(f"{conv.name}: expected a channels-last token grid transposed into the convolution")
+        only(conv.input[0], "Conv", conv)
+        after_conv = consumers.get(conv.output[0], [])
+        if len(after_conv) == 1:
+            chains.append(_FfnChain(before, conv, only(conv.output[0], "Transpose", conv)))
+            continue
+        scale = next((n for n in after_conv if n.op_type == "Mul" and n.input[1] in _constants(model)), None)
+        if scale is None or len(after_conv) != 2:
+            raise ValueError(f"{conv.name}: unexpected graph around a fused mix-FFN convolution")
+        sigmoid = only(scale.output[0], "Sigmoid", conv)
+        product = only(sigmoid.output[0], "Mul", conv)
+        mlp2 = only(product.output[0], "Conv", conv)
+        chains.append(_FfnChain(before, conv, only(mlp2.output[0], "Transpose", conv), (scale, sigmoid, product, mlp2)))
+    return chains
+
+
+def _constants(model: onnx.ModelProto) -> dict[str, np.ndarray]:
+    values = {init.name: numpy_helper.to_array(init) for init in model.graph.initializer}
+    for node in model.graph.node:
+        if node.op_type == "Constant":
+            values[node.output[0]] = numpy_helper.to_array(node.attribute[0].t)
+    return values
 
 
 def calibrate_ranges(model_bytes: bytes, depth: np.ndarray, tensors: list[str]) -> dict[str, tuple[float, float]]:
@@ -185,60 +242,88 @@ def _uint8_params(low: float, high: float, margin: float = RANGE_MARGIN) -> tupl
     return np.float32(scale), np.uint8(np.clip(round(-low / scale), 0, 255))
 
 
-def _quantize_fused_convs(model: onnx.ModelProto, ranges: dict[str, tuple[float, float]]) -> None:
-    """Each fused mix-FFN convolution as ONNX Runtime's channels-last int8 ``QLinearConv``, in place.
+def _int8_conv(prefix: str, x: str, x_scale: str, x_zero: str, x_scale_value: float, conv: onnx.NodeProto,
+               inits: dict, y_scale: str, y_zero: str, out: str) -> tuple[list[onnx.NodeProto], dict[str, np.ndarray]]:
+    """A channels-last ``QLinearConv`` computing float ``conv`` on uint8 ``x``: int8 weights, symmetric, one
+    scale per output channel (the kernel ONNX Runtime runs with int8 dot-product instructions), int32 bias."""
+    attrs = {a.name: helper.get_attribute_value(a) for a in conv.attribute}
+    weight = numpy_helper.to_array(inits[conv.input[1]]).astype(np.float64)
+    bias = numpy_helper.to_array(inits[conv.input[2]]).astype(np.float64)
+    w_scale = np.maximum(np.abs(weight).reshape(len(weight), -1).max(axis=1), 1e-12) / 127.0
+    constants = {
+        f"{prefix}_w": np.clip(np.round(weight / w_scale[:, None, None, None]), -127, 127).astype(np.int8),
+        f"{prefix}_w_scale": w_scale.astype(np.float32), f"{prefix}_w_zero": np.zeros(len(weight), np.int8),
+        f"{prefix}_b": np.round(bias / (float(x_scale_value) * w_scale)).astype(np.int32),
+    }  # fmt: skip
+    conv_attrs = {k: attrs[k] for k in ("kernel_shape", "pads", "strides", "dilations") if k in attrs}
+    w = f"{prefix}_w"
+    inputs = [x, x_scale, x_zero, w, f"{w}_scale", f"{w}_zero", y_scale, y_zero, f"{prefix}_b"]
+    node = helper.make_node("QLinearConv", inputs, [out], name=f"{prefix}_conv", domain="com.microsoft",
+                            channels_last=1, **conv_attrs)  # fmt: skip
+    return [node], constants
 
-    The exported pattern is ``Transpose(NHWC -> NCHW) -> Conv -> Transpose(NCHW -> NHWC)``; the
-    replacement reads and writes the channels-last tensors directly: ``QuantizeLinear`` (uint8, the
-    calibrated input range) -> ``QLinearConv`` (int8 weights, symmetric, one scale per output channel: the
-    kernel ONNX Runtime runs with int8 dot-product instructions) -> ``DequantizeLinear`` (the calibrated
-    output range). Accumulation is exact int32; the error is the rounding of inputs, weights and outputs.
+
+def _quantize_fused_convs(model: onnx.ModelProto, ranges: dict[str, tuple[float, float]]) -> None:
+    """Each fused mix-FFN as ONNX Runtime's channels-last uint8 operators, in place.
+
+    ``Transpose -> Conv -> Transpose`` becomes ``QuantizeLinear`` (the calibrated input range) -> ``QLinearConv``
+    -> ``DequantizeLinear`` (the calibrated output range), reading and writing the channels-last tokens
+    directly. A chain with the sigmoid GELU (``FusedConvMixFFN`` "quick") stays uint8 through it:
+    ``QLinearSigmoid`` (a 256-entry table; the 1.702 goes into its input scale) -> ``QLinearMul`` ->
+    ``QLinearConv`` (mlp2) -> ``DequantizeLinear``. Accumulation is exact int32; the error is the rounding of
+    the activations (8 bits over their calibrated ranges) and of the weights.
     """
     inits = {init.name: init for init in model.graph.initializer}
-    producers = {out: node for node in model.graph.node for out in node.output}
-    consumers: dict[str, list[onnx.NodeProto]] = {}
-    for node in model.graph.node:
-        for name in node.input:
-            consumers.setdefault(name, []).append(node)
+    constants_all = _constants(model)
     drop, replace = set(), {}
-    for index, (conv, x_name, y_name) in enumerate(_fused_convs(model)):
-        before, after = producers[x_name], consumers[y_name]
-        perm_in = [a.ints for a in before.attribute if a.name == "perm"]
-        if before.op_type != "Transpose" or list(perm_in[0]) != [0, 3, 1, 2] or len(consumers[x_name]) != 1:
-            raise ValueError(f"{conv.name}: expected a channels-last token grid transposed into the convolution")
-        if len(after) != 1 or after[0].op_type != "Transpose":
-            raise ValueError(f"{conv.name}: expected the convolution's output transposed back to channels-last")
-        attrs = {a.name: helper.get_attribute_value(a) for a in conv.attribute}
-        weight = numpy_helper.to_array(inits[conv.input[1]]).astype(np.float64)
-        bias = numpy_helper.to_array(inits[conv.input[2]]).astype(np.float64)
-        x_scale, x_zero = _uint8_params(*ranges[x_name])
-        y_scale, y_zero = _uint8_params(*ranges[y_name])
-        w_scale = np.maximum(np.abs(weight).reshape(len(weight), -1).max(axis=1), 1e-12) / 127.0
-        w_int8 = np.clip(np.round(weight / w_scale[:, None, None, None]), -127, 127).astype(np.int8)
-        b_int32 = np.round(bias / (float(x_scale) * w_scale)).astype(np.int32)
-        p = f"vitfly_int8_conv_{index}"
-        constants = {
-            f"{p}_x_scale": x_scale, f"{p}_x_zero": x_zero, f"{p}_w": w_int8,
-            f"{p}_w_scale": w_scale.astype(np.float32), f"{p}_w_zero": np.zeros(len(weight), np.int8),
-            f"{p}_y_scale": y_scale, f"{p}_y_zero": y_zero, f"{p}_b": b_int32,
-        }  # fmt: skip
+
+    def scalar(name: str, value) -> str:
+        model.graph.initializer.append(numpy_helper.from_array(np.asarray(value), name))
+        return name
+
+    for index, chain in enumerate(_ffn_chains(model)):
+        p = f"vitfly_int8_ffn_{index}"
+        x_name, y_name = chain.conv.input[0], chain.conv.output[0]
+        xs_value, xz_value = _uint8_params(*ranges[x_name])
+        xs, xz = scalar(f"{p}_x_scale", xs_value), scalar(f"{p}_x_zero", xz_value)
+        ys_value, yz_value = _uint8_params(*ranges[y_name])
+        ys, yz = scalar(f"{p}_y_scale", ys_value), scalar(f"{p}_y_zero", yz_value)
+        nodes = [helper.make_node("QuantizeLinear", [chain.before.input[0], xs, xz], [f"{p}_xq"], name=f"{p}_quantize")]
+        conv_nodes, constants = _int8_conv(p, f"{p}_xq", xs, xz, xs_value, chain.conv, inits, ys, yz, f"{p}_yq")
+        nodes += conv_nodes
+        if chain.quick is None:
+            nodes.append(helper.make_node("DequantizeLinear", [f"{p}_yq", ys, yz], [chain.after.output[0]],
+                                          name=f"{p}_dequantize"))  # fmt: skip
+        else:
+            scale_node, sigmoid, product, mlp2 = chain.quick
+            factor = float(np.asarray(constants_all[scale_node.input[1]]).reshape(-1)[0])
+            ss, sz = scalar(f"{p}_s_scale", np.float32(1.0 / 255.0)), scalar(f"{p}_s_zero", np.uint8(0))
+            sig_in = scalar(f"{p}_sig_in_scale", np.float32(ys_value * factor))
+            gs_value, gz_value = _uint8_params(*ranges[product.output[0]])
+            gs, gz = scalar(f"{p}_g_scale", gs_value), scalar(f"{p}_g_zero", gz_value)
+            os_value, oz_value = _uint8_params(*ranges[mlp2.output[0]])
+            os_, oz = scalar(f"{p}_o_scale", os_value), scalar(f"{p}_o_zero", oz_value)
+            nodes += [
+                helper.make_node("QLinearSigmoid", [f"{p}_yq", sig_in, yz, ss, sz], [f"{p}_sq"], name=f"{p}_sigmoid",
+                                 domain="com.microsoft"),
+                helper.make_node("QLinearMul", [f"{p}_yq", ys, yz, f"{p}_sq", ss, sz, gs, gz], [f"{p}_gq"],
+                                 name=f"{p}_gelu", domain="com.microsoft"),
+            ]  # fmt: skip
+            mlp2_nodes, mlp2_constants = _int8_conv(f"{p}_mlp2", f"{p}_gq", gs, gz, gs_value, mlp2, inits, os_, oz,
+                                                     f"{p}_oq")
+            nodes += mlp2_nodes
+            constants.update(mlp2_constants)
+            nodes.append(helper.make_node("DequantizeLinear", [f"{p}_oq", os_, oz], [chain.after.output[0]],
+                                          name=f"{p}_dequantize"))  # fmt: skip
+            drop.update(n.output[0] for n in chain.quick)
         model.graph.initializer.extend(numpy_helper.from_array(np.asarray(v), k) for k, v in constants.items())
-        conv_attrs = {k: attrs[k] for k in ("kernel_shape", "pads", "strides", "dilations") if k in attrs}
-        replace[id(conv)] = [
-            helper.make_node("QuantizeLinear", [before.input[0], f"{p}_x_scale", f"{p}_x_zero"], [f"{p}_xq"],
-                             name=f"{p}_quantize"),
-            helper.make_node("QLinearConv", [f"{p}_xq", f"{p}_x_scale", f"{p}_x_zero", f"{p}_w", f"{p}_w_scale",
-                                             f"{p}_w_zero", f"{p}_y_scale", f"{p}_y_zero", f"{p}_b"],
-                             [f"{p}_yq"], name=f"{p}_conv", domain="com.microsoft", channels_last=1, **conv_attrs),
-            helper.make_node("DequantizeLinear", [f"{p}_yq", f"{p}_y_scale", f"{p}_y_zero"], [after[0].output[0]],
-                             name=f"{p}_dequantize"),
-        ]  # fmt: skip
-        drop.update({id(before), id(after[0])})
+        replace[chain.conv.output[0]] = nodes  # (nodes are known by their first output: outputs are unique)
+        drop.update({chain.before.output[0], chain.after.output[0]})
     nodes = []
     for node in model.graph.node:
-        if id(node) in replace:
-            nodes.extend(replace[id(node)])
-        elif id(node) not in drop:
+        if node.output[0] in replace:
+            nodes.extend(replace[node.output[0]])
+        elif node.output[0] not in drop:
             nodes.append(node)
     del model.graph.node[:]
     model.graph.node.extend(nodes)
@@ -248,4 +333,3 @@ def _quantize_fused_convs(model: onnx.ModelProto, ranges: dict[str, tuple[float,
     model.graph.initializer.extend(kept)
     if not any(op.domain == "com.microsoft" for op in model.opset_import):
         model.opset_import.append(helper.make_opsetid("com.microsoft", 1))
-
