@@ -125,6 +125,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--block", type=int, default=20, help="calls in a row before the next back end's turn")
     parser.add_argument("--warmup", type=int, default=100)
     parser.add_argument("--repeats", type=int, default=5)
+    parser.add_argument("--clock", choices=("wall", "cpu"), default=None,
+                        help="ignored: both clocks are always timed (kept for older command lines)")
     parser.add_argument("--out", default=None, help="JSON with the settings, the summary and every repeat")
     args = parser.parse_args(argv)
     console = Console(stderr=True)
