@@ -3,10 +3,12 @@
 Batch 1, one control tick per call, recurrent state carried from call to call (as in flight), a warm-up,
 then ``iters`` individually timed calls (``time.perf_counter``; CUDA synchronised after every call);
 median and 90th percentile in milliseconds. Back ends: ``eager`` (the PyTorch module under
-``torch.inference_mode``), ``onnxruntime`` (an ONNX export with a fixed batch of 1, checked against
-eager before anything is timed) and ``onnxruntime-int8`` (the same with its large products in int8,
-``vitfly.deploy.quantize``). ``prepare_original`` times the original project's networks the same way,
-imported from a checkout (``vitfly.eval.original_networks``).
+``torch.inference_mode``), ``compiled`` (the same with its encoder through ``torch.compile``),
+``onnxruntime`` (an ONNX export with a fixed batch of 1, checked against eager before anything is timed)
+and ``onnxruntime-int8`` (the same with its large products in int8 and, in the ViTs, the mix-FFNs as int8
+convolutions calibrated on recorded expert flights; ``vitfly.deploy.quantize``). ``prepare_original``
+times the original project's networks the same way, imported from a checkout
+(``vitfly.eval.original_networks``); ``time_interleaved`` times several steps side by side on both clocks.
 """
 
 from __future__ import annotations
