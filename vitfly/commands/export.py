@@ -31,7 +31,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument("--opset", type=int, default=None, help="ONNX opset (default: the exporter's)")
     parser.add_argument("--precision", choices=("fp32", "int8"), default="fp32",
-                        help="int8: large matrix products in int8 (dynamic quantisation), for CPUs with VNNI")
+                        help="int8: large matrix products in int8 (dynamic quantisation), for CPUs with VNNI; "
+                             "the ViTs' mix-FFNs as int8 convolutions calibrated on recorded expert flights")
     parser.add_argument("--force", action="store_true", help="overwrite --out if it exists")
 
 
@@ -64,6 +65,14 @@ def run(args: argparse.Namespace) -> int:
         raise VitflyError(
             f"{args.source}: neither an existing checkpoint file nor a registry name ({', '.join(list_models())})"
         )
+    calibration = None
+    if args.precision == "int8" and not args.no_optimize:
+        from vitfly.eval.latency import needs_calibration
+
+        if needs_calibration(net):  # a few seconds of simulated expert flight fix the activation ranges
+            from vitfly.eval.agreement import calibration_depth
+
+            calibration = calibration_depth()
     diff = export_onnx(
         net,
         args.out,
@@ -71,6 +80,7 @@ def run(args: argparse.Namespace) -> int:
         opset=args.opset,
         batch_size=args.batch_size,
         precision=args.precision,
+        calibration_depth=calibration,
     )
     batch = "dynamic" if args.batch_size is None else str(args.batch_size)
     state = " + LSTM state h0, c0 -> hn, cn" if getattr(net, "is_recurrent", False) else ""

@@ -71,18 +71,23 @@ def export_onnx_bytes(
     opset: int | None = None,
     batch_size: int | None = None,
     precision: str = "fp32",
+    calibration_depth: np.ndarray | None = None,
 ) -> bytes:
     """The ONNX model of ``net`` (a zoo network) as bytes; see the module docstring for the signature.
 
     ``batch_size`` None gives a dynamic batch axis; an int fixes it (a leaner graph: batch-1 deployment).
     ``precision`` "int8" quantises the large matrix products (``vitfly.deploy.quantize``) and, with
-    ``optimize``, takes the tanh approximation of GELU (``inference_copy``).
+    ``optimize``, takes the tanh approximation of GELU (``inference_copy``). Given ``calibration_depth``
+    (N, 60, 90) frames in [0, 1] (recorded flights), the int8 ViTs also run their mix-FFNs as int8
+    convolutions whose activation ranges those frames fix; without, the mix-FFNs stay float32.
     """
     if precision not in PRECISIONS:
         raise VitflyError(f"precision must be one of {', '.join(PRECISIONS)}, got {precision!r}")
     net = net.eval()
     state_shape = _state_shape(net)
-    graph_net = inference_copy(net, approximate_gelu=precision == "int8") if optimize else net
+    int8 = precision == "int8"
+    fuse_ffn = int8 and calibration_depth is not None
+    graph_net = inference_copy(net, approximate_gelu=int8, fuse_ffn=fuse_ffn) if optimize else net
     example_batch = EXPORT_BATCH if batch_size is None else batch_size
     args = example_inputs(net, example_batch)
     dynamic: dict[str, dict[int, object]] | None = None
@@ -128,7 +133,7 @@ def export_onnx_bytes(
         entry = model.metadata_props.add()
         entry.key, entry.value = key, value
     data = model.SerializeToString()
-    return quantize_int8(data) if precision == "int8" else data
+    return quantize_int8(data, calibration_depth=calibration_depth if fuse_ffn else None) if int8 else data
 
 
 def export_onnx(
@@ -142,6 +147,7 @@ def export_onnx(
     check: bool = True,
     atol: float | None = None,
     precision: str = "fp32",
+    calibration_depth: np.ndarray | None = None,
 ) -> float | None:
     """Write ``net`` as ONNX to ``path`` atomically; with ``check``, first verify it against eager.
 
@@ -149,7 +155,8 @@ def export_onnx(
     and writes nothing if ONNX Runtime's outputs differ from eager by more than ``atol`` (default
     ``CHECK_ATOL[precision]``; relative to the output magnitude when it exceeds 1).
     """
-    data = export_onnx_bytes(net, name=name, optimize=optimize, opset=opset, batch_size=batch_size, precision=precision)
+    data = export_onnx_bytes(net, name=name, optimize=optimize, opset=opset, batch_size=batch_size,
+                             precision=precision, calibration_depth=calibration_depth)  # fmt: skip
     diff = None
     if check:
         atol = CHECK_ATOL[precision] if atol is None else atol
@@ -183,7 +190,7 @@ class OnnxPolicyRunner:
     -> (velocity[B, T, 3], hidden)``; numpy in gives numpy out, torch in gives torch out. T > 1 runs
     the ticks one after another, carrying the recurrent state. ``path_or_net`` is an .onnx file, ONNX
     bytes, or a zoo network (exported on the fly in ``precision``, then checked against eager within
-    ``CHECK_ATOL[precision]``).
+    ``CHECK_ATOL[precision]``; ``calibration_depth`` as for ``export_onnx_bytes``).
     """
 
     def __init__(
@@ -194,11 +201,13 @@ class OnnxPolicyRunner:
         providers: list[str] | None = None,
         optimize: bool = True,
         precision: str = "fp32",
+        calibration_depth: np.ndarray | None = None,
     ) -> None:
         import onnxruntime as ort
 
         if isinstance(path_or_net, nn.Module):
-            model = export_onnx_bytes(path_or_net, optimize=optimize, precision=precision)
+            model = export_onnx_bytes(path_or_net, optimize=optimize, precision=precision,
+                                      calibration_depth=calibration_depth)  # fmt: skip
             source = type(path_or_net).__name__
         elif isinstance(path_or_net, bytes):
             model, source = path_or_net, "<onnx bytes>"

@@ -109,6 +109,74 @@ class ConvMixFFN(nn.Module):
         return y.permute(0, 2, 3, 1).reshape(-1, h * w, c)
 
 
+class FusedConvMixFFN(nn.Module):
+    """``MixFFN`` with mlp1 multiplied into the grouped convolution: one dense 3x3 convolution C -> C*E.
+
+    Nothing non-linear sits between mlp1 and the grouped convolution, so per output channel o of group g
+    the pair is ``sum_taps W_g[tap] @ W1_g`` applied to the shifted tokens: a dense convolution of the
+    C-channel token grid. It has more products than the pair (C*9 per output against 1 + E*9), but it is
+    the shape int8 convolution kernels run fastest (``vitfly.deploy.quantize``: about 3x the float pair).
+    mlp1's bias goes through the grouped convolution's zero padding, so border pixels see fewer taps of it:
+    it rides on an extra input channel of ones (zero-padded like the rest, so the border sees exactly the
+    taps it should), plus three zero channels: the int8 kernel wants input channels in multiples of 4.
+    Tokens stay channels-last. ``gelu`` "quick" takes GELU's sigmoid approximation ``x * sigmoid(1.702 x)``
+    (a different function, for int8 chains that stay uint8 from the convolution to mlp2; ``QUICK_GELU``) and
+    runs mlp2 as a 1x1 convolution (``fused_mlp2``) on the same grid.
+    """
+
+    EXTRA_CHANNELS = 4  # [ones, 0, 0, 0]
+
+    def __init__(self, ffn: MixFFN, gelu: str = "none") -> None:
+        super().__init__()
+        self.gelu = gelu
+        depthwise = ffn.depthwise
+        groups, hidden = depthwise.groups, depthwise.out_channels
+        per_group = depthwise.in_channels // groups
+        channels = ffn.mlp1.in_features
+        with torch.no_grad():
+            w1 = ffn.mlp1.weight.reshape(groups, per_group, channels)  # (groups, E in, C)
+            wd = depthwise.weight.reshape(groups, per_group, per_group, 3, 3)  # (groups, E out, E in, 3, 3)
+            b1 = ffn.mlp1.bias.reshape(groups, per_group)
+            weight = torch.zeros(hidden, channels + self.EXTRA_CHANNELS, 3, 3)
+            weight[:, :channels] = torch.einsum("goiyx,gic->gocyx", wd, w1).reshape(hidden, channels, 3, 3)
+            weight[:, channels] = torch.einsum("goiyx,gi->goyx", wd, b1).reshape(hidden, 3, 3)
+            self.fused_conv = nn.Conv2d(channels + self.EXTRA_CHANNELS, hidden, kernel_size=3, padding=1)
+            self.fused_conv.weight.copy_(weight)
+            self.fused_conv.bias.copy_(depthwise.bias)
+        extra = torch.zeros(1, 1, 1, self.EXTRA_CHANNELS)
+        extra[..., 0] = 1.0
+        self.register_buffer("extra", extra)
+        self.mlp2 = ffn.mlp2
+        if gelu == "quick":  # mlp2 as a 1x1 convolution on the same grid: the uint8 chain stays channels-last
+            self.fused_mlp2 = _pointwise_conv(ffn.mlp2)
+
+    def forward(self, x: torch.Tensor, h: int, w: int) -> torch.Tensor:
+        n, length, c = x.shape
+        grid = torch.cat((x.reshape(n, h, w, c), self.extra.expand(n, h, w, -1)), dim=-1)
+        if self.gelu == "quick":
+            y = self.fused_conv(grid.permute(0, 3, 1, 2))
+            y = self.fused_mlp2(y * torch.sigmoid(QUICK_GELU * y))
+            return y.permute(0, 2, 3, 1).reshape(n, length, c)
+        y = self.fused_conv(grid.permute(0, 3, 1, 2)).permute(0, 2, 3, 1)
+        return self.mlp2(F.gelu(y, approximate=self.gelu).reshape(n, length, -1))
+
+
+# GELU(x) ~ x * sigmoid(1.702 x) (|error| < 0.021): a sigmoid, which int8 kernels run as a 256-entry table
+QUICK_GELU = 1.702
+# the ViT stages whose int8 mix-FFNs take it: measured over recorded flights (random weights, seed 0) it took
+# the ViT from 0.26x to 0.24x the original and its largest command difference from 0.07 to 0.09 m/s; the
+# ViT+LSTM keeps the float GELU, its int8 products already use most of the 0.15 m/s tolerance
+QUICK_GELU_STAGES: dict[str, tuple[int, ...]] = {"vit": (0, 1)}
+
+
+def fuse_mix_ffns(backbone: nn.Module, gelu: str = "tanh", quick_gelu_stages: tuple[int, ...] = ()) -> None:
+    """Replace every mix-FFN of a ViT backbone (``encoder_blocks``) by ``FusedConvMixFFN``, in place; the
+    stages in ``quick_gelu_stages`` take the sigmoid approximation of GELU (see ``FusedConvMixFFN``)."""
+    for index, stage in enumerate(backbone.encoder_blocks):
+        for i, ffn in enumerate(stage._ffn):
+            stage._ffn[i] = FusedConvMixFFN(ffn, "quick" if index in quick_gelu_stages else gelu)
+
+
 class FoldedAttention(nn.Module):
     """``EfficientSelfAttention`` with the query scale and the output projection folded in.
 
@@ -327,16 +395,19 @@ def _replace_modules(module: nn.Module, gelu: str) -> None:
             _replace_modules(child, gelu)
 
 
-def inference_copy(net: nn.Module, approximate_gelu: bool = False) -> nn.Module:
+def inference_copy(net: nn.Module, approximate_gelu: bool = False, fuse_ffn: bool = False) -> nn.Module:
     """An eval-mode copy of ``net`` with the rewrites above; same call contract and outputs.
 
     ``approximate_gelu`` runs the mix-FFN's GELU as its tanh approximation (|error| < 5e-4; about 6 % of the
     ViT's time at batch 1 on CPU): a different function, for the int8 fast path whose commands are checked
-    against the exact network over recorded flights.
+    against the exact network over recorded flights. ``fuse_ffn`` gives the ViTs' mix-FFNs as one dense
+    convolution each (``FusedConvMixFFN``; the same function, for the int8 path's convolutions).
     """
     copy_ = copy.deepcopy(net).eval()
     if _FoldedConvNet.foldable(copy_):
         return _FoldedConvNet(copy_).eval()
+    if fuse_ffn and isinstance(copy_, (ViT, ViTLSTM)):
+        fuse_mix_ffns(copy_, "tanh" if approximate_gelu else "none", QUICK_GELU_STAGES.get(copy_.model_name, ()))
     _replace_modules(copy_, "tanh" if approximate_gelu else "none")
     if isinstance(copy_, ViT):
         copy_ = _FoldedViT(copy_).eval()

@@ -11,6 +11,7 @@ commands (m/s, after the paper's clip / normalise / scale and take-off ramp) ove
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Sequence
 from dataclasses import asdict, dataclass
 
@@ -63,6 +64,21 @@ def record_flights(
                        r.log.position.copy())  # fmt: skip
         for (seed, speed), r in zip(pairs, results, strict=True)
     ]
+
+
+@functools.lru_cache(maxsize=4)
+def calibration_depth(seed: int = 10, seconds: float = 6.0, every: int = 2) -> np.ndarray:
+    """Depth frames (N, 60, 90) for calibrating int8 activation ranges (``vitfly.deploy.quantize``).
+
+    Expert flights of ``seconds`` through one spheres scene at 3 and 7 m/s and one trees scene at 5 m/s
+    (scene ``seed``; the agreement checks fly other seeds), every ``every``-th tick: about 270 frames.
+    Deterministic; recorded once per process. Read-only.
+    """
+    flights = record_flights("spheres", (seed,), (3.0, 7.0), timeout_s=seconds)
+    flights += record_flights("trees", (seed,), (5.0,), timeout_s=seconds)
+    frames = np.concatenate([f.depth[::every] for f in flights])
+    frames.flags.writeable = False
+    return frames
 
 
 def replay_commands(policy: LearnedPolicy, flights: Sequence[RecordedFlight]) -> list[np.ndarray]:

@@ -3,10 +3,12 @@
 Batch 1, one control tick per call, recurrent state carried from call to call (as in flight), a warm-up,
 then ``iters`` individually timed calls (``time.perf_counter``; CUDA synchronised after every call);
 median and 90th percentile in milliseconds. Back ends: ``eager`` (the PyTorch module under
-``torch.inference_mode``), ``onnxruntime`` (an ONNX export with a fixed batch of 1, checked against
-eager before anything is timed) and ``onnxruntime-int8`` (the same with its large products in int8,
-``vitfly.deploy.quantize``). ``prepare_original`` times the original project's networks the same way,
-imported from a checkout (``vitfly.eval.original_networks``).
+``torch.inference_mode``), ``compiled`` (the same with its encoder through ``torch.compile``),
+``onnxruntime`` (an ONNX export with a fixed batch of 1, checked against eager before anything is timed)
+and ``onnxruntime-int8`` (the same with its large products in int8 and, in the ViTs, the mix-FFNs as int8
+convolutions calibrated on recorded expert flights; ``vitfly.deploy.quantize``). ``prepare_original``
+times the original project's networks the same way, imported from a checkout
+(``vitfly.eval.original_networks``); ``time_interleaved`` times several steps side by side on both clocks.
 """
 
 from __future__ import annotations
@@ -71,9 +73,9 @@ class LatencyResult:
         return asdict(self)
 
 
-# "wall": elapsed time (the paper's measure); "cpu": CPU time of the calling thread, which leaves out the time
-# the thread waits for a core on a shared machine (one-thread runs only: other threads' work is not counted)
-CLOCKS: dict[str, Callable[[], float]] = {"wall": time.perf_counter, "cpu": time.thread_time}
+# "wall": elapsed time (the paper's measure); "cpu": CPU time of the process (all its threads), which leaves
+# out the time spent waiting for a core on a shared machine (meaningful for one-thread runs)
+CLOCKS: dict[str, Callable[[], float]] = {"wall": time.perf_counter, "cpu": time.process_time}
 
 
 def time_calls(
@@ -112,6 +114,42 @@ def time_calls(
     return times * 1000.0
 
 
+def time_interleaved(
+    steps: dict[str, Callable[[], object]], calls: int, block: int = 20, warmup: int = 100
+) -> dict[str, dict[str, np.ndarray]]:
+    """Time several steps (one thread) side by side: milliseconds per call on both ``CLOCKS``, per step.
+
+    After ``warmup`` untimed calls of each, the steps take turns in blocks of ``block`` calls, the order
+    reversed every other round, until each has ``calls`` timed calls; a burst of load from other processes
+    then lands on all of them alike instead of on whichever ran during it. Returns
+    ``{name: {"wall": ms (calls,), "cpu": ms (calls,)}}``.
+    """
+    if calls < 1 or block < 1 or warmup < 0:
+        raise VitflyError(f"calls and block must be >= 1 and warmup >= 0, got {calls}, {block}, {warmup}")
+    names = list(steps)
+    for name in names:
+        for _ in range(warmup):
+            steps[name]()
+    times = {name: {clock: np.empty(calls) for clock in CLOCKS} for name in names}
+    wall, cpu = CLOCKS["wall"], CLOCKS["cpu"]
+    gc.collect()
+    gc_was_enabled = gc.isenabled()
+    gc.disable()
+    try:
+        for round_, start in enumerate(range(0, calls, block)):
+            stop = min(start + block, calls)
+            for name in names if round_ % 2 == 0 else names[::-1]:
+                step, w, c = steps[name], times[name]["wall"], times[name]["cpu"]
+                for i in range(start, stop):
+                    w0, c0 = wall(), cpu()
+                    step()
+                    c[i], w[i] = cpu() - c0, wall() - w0
+    finally:
+        if gc_was_enabled:
+            gc.enable()
+    return {name: {clock: t * 1000.0 for clock, t in by_clock.items()} for name, by_clock in times.items()}
+
+
 def _inputs(device: torch.device, seed: int = 0) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """One frame: random depth in [0, 1], 5 m/s, level attitude (w, x, y, z)."""
     g = torch.Generator().manual_seed(seed)
@@ -135,12 +173,17 @@ def eager_step(net: nn.Module, device: torch.device) -> Callable[[], object]:
 
 
 def onnxruntime_step(
-    net: nn.Module, device: torch.device, threads: int, atol: float | None = None, precision: str = "fp32"
+    net: nn.Module,
+    device: torch.device,
+    threads: int,
+    atol: float | None = None,
+    precision: str = "fp32",
+    calibration_depth: np.ndarray | None = None,
 ) -> tuple[Callable[[], object], float]:
     """A closure running one tick through ONNX Runtime (fixed batch 1) and the check's largest difference.
 
     Raises VitflyError, timing nothing, if ONNX Runtime's outputs differ from eager by more than ``atol``
-    (default: the export's ``CHECK_ATOL`` for ``precision``).
+    (default: the export's ``CHECK_ATOL`` for ``precision``). ``calibration_depth``: see ``export_onnx_bytes``.
     """
     import onnxruntime as ort
 
@@ -153,8 +196,8 @@ def onnxruntime_step(
         if "CUDAExecutionProvider" not in ort.get_available_providers():
             raise VitflyError("--backend onnxruntime --device cuda needs onnxruntime-gpu (CUDAExecutionProvider)")
         providers = ["CUDAExecutionProvider"]
-    runner = OnnxPolicyRunner(export_onnx_bytes(net, batch_size=1, precision=precision), threads=threads,
-                              providers=providers)  # fmt: skip
+    data = export_onnx_bytes(net, batch_size=1, precision=precision, calibration_depth=calibration_depth)
+    runner = OnnxPolicyRunner(data, threads=threads, providers=providers)
     diff = runner.check_against(net.cpu(), atol=CHECK_ATOL[precision] if atol is None else atol, batch_size=1)
     if device.type == "cuda":  # inputs and outputs go through host memory here
         depth, speed, quat = (x.numpy() for x in _inputs(torch.device("cpu")))
@@ -169,6 +212,13 @@ def onnxruntime_step(
     for buffer, value in zip((bound.depth, bound.desired_speed, bound.quat), _inputs(device), strict=True):
         np.copyto(buffer, value.numpy())
     return bound, diff
+
+
+def needs_calibration(net: nn.Module) -> bool:
+    """Whether the int8 export of ``net`` has calibrated convolutions (the ViTs' mix-FFNs)."""
+    from vitfly.zoo.vit import ViTBackbone
+
+    return isinstance(net, ViTBackbone)
 
 
 @dataclass
@@ -186,10 +236,16 @@ class PreparedStep:
 
 
 def prepare_step(
-    name: str, backend: str = "eager", device: str = "cpu", threads: int = 1, net: nn.Module | None = None
+    name: str,
+    backend: str = "eager",
+    device: str = "cpu",
+    threads: int = 1,
+    net: nn.Module | None = None,
+    calibration_depth: np.ndarray | None = None,
 ) -> PreparedStep:
     """Build (and, for ONNX Runtime back ends, export and check) one registered model (random weights unless
-    ``net`` is given) for timing."""
+    ``net`` is given) for timing. The int8 back end of the ViTs calibrates its convolutions on
+    ``calibration_depth`` (default ``vitfly.eval.agreement.calibration_depth()``, recorded expert flights)."""
     if backend not in BACKENDS:
         raise VitflyError(f"--backend must be one of {', '.join(BACKENDS)}, got {backend!r}")
     if threads < 1:
@@ -207,8 +263,19 @@ def prepare_step(
         if backend == "eager":
             net = net.to(dev)
             step = eager_step(net, dev)
+        elif backend == "compiled":
+            from vitfly.zoo import compile_encoder
+
+            net = net.to(dev)
+            compile_encoder(net)
+            step = eager_step(net, dev)
         else:
-            step, diff = onnxruntime_step(net, dev, threads, precision=backend_precision(backend))
+            precision = backend_precision(backend)
+            if precision == "int8" and calibration_depth is None and needs_calibration(net):
+                from vitfly.eval.agreement import calibration_depth as default_calibration
+
+                calibration_depth = default_calibration()
+            step, diff = onnxruntime_step(net, dev, threads, precision=precision, calibration_depth=calibration_depth)
     finally:
         torch.set_num_threads(previous_threads)
     sync = torch.cuda.synchronize if (dev.type == "cuda" and backend == "eager") else None
@@ -232,7 +299,7 @@ def prepare_original(module, name: str, threads: int = 1) -> PreparedStep:
 def time_step(prepared: PreparedStep, iters: int = 1000, warmup: int = 100, clock: str = "wall") -> LatencyResult:
     """Time a prepared model: ``warmup`` untimed ticks, then ``iters`` timed ones, torch on ``threads``.
 
-    ``clock`` "cpu" (the thread's CPU time) needs one thread on the CPU: VitflyError otherwise.
+    ``clock`` "cpu" (the process's CPU time) needs one thread on the CPU: VitflyError otherwise.
     """
     if clock == "cpu" and (prepared.threads != 1 or prepared.device != "cpu"):
         raise VitflyError("--clock cpu measures one thread on the CPU: use --threads 1 and the CPU")

@@ -57,8 +57,12 @@ class LearnedPolicy:
 
     ``step_fn`` replaces the eager network call (e.g. an ONNX Runtime session with the same
     inputs and outputs); by default the network runs under ``torch.no_grad`` on ``device`` (not
-    inference_mode: the per-env state is updated in place between calls). ``takeoff_ramp`` False is
-    vitfly's variant without the paper's take-off ramp (full speed from the start).
+    inference_mode: the per-env state is updated in place between calls). A ``step_fn`` with a
+    ``bind(batch_size)`` method (``vitfly.deploy.onnx.OnnxPolicyRunner``) is called on buffers bound once
+    per ``reset``: while every env is active a tick copies the observation in and the command out, with no
+    per-tick allocation and no torch tensors (the recurrent state stays in the bound buffers); ticks with
+    some envs finished take the general path on those buffers. ``takeoff_ramp`` False is vitfly's variant
+    without the paper's take-off ramp (full speed from the start).
     """
 
     def __init__(
@@ -73,6 +77,8 @@ class LearnedPolicy:
         self.takeoff_ramp = bool(takeoff_ramp)
         self.is_recurrent = bool(getattr(net, "is_recurrent", False))
         self._step = step_fn or self._eager_step
+        self._bind = getattr(step_fn, "bind", None)
+        self._bound = None  # the step_fn's bound buffers for num_envs (see the class docstring)
         self._hidden = None
         self.num_envs = 0
 
@@ -87,10 +93,19 @@ class LearnedPolicy:
     def reset(self, num_envs: int) -> None:
         """Start a new trial in every env: zero recurrent state."""
         self.num_envs = int(num_envs)
+        if self._bind is not None:
+            if self._bound is None or self._bound.depth.shape[0] != self.num_envs:
+                self._bound = self._bind(self.num_envs)
+            self._bound.reset()
+            self._hidden = None
+            return
         self._hidden = self._zero_hidden(self.num_envs)
 
     def reset_envs(self, env_indices: Sequence[int]) -> None:
         """Start a new trial in some envs only (their recurrent state is zeroed)."""
+        if self._bound is not None and self._bound.hidden is not None and len(env_indices):
+            for h in self._bound.hidden:
+                h[:, list(env_indices)] = 0.0
         if self._hidden is not None and len(env_indices):
             idx = torch.as_tensor(list(env_indices), dtype=torch.long, device=self.device)
             for h in self._hidden:
@@ -106,6 +121,8 @@ class LearnedPolicy:
         out = np.zeros((n, 3), dtype=np.float64)
         if not active.any():
             return out
+        if self._bound is not None:
+            return self._bound_output(obs, depth, active, out)
         idx_np = np.flatnonzero(active)
         idx = torch.as_tensor(idx_np, dtype=torch.long, device=self.device)
         d = torch.from_numpy(depth[idx_np]).to(self.device)[:, None, None]
@@ -121,6 +138,28 @@ class LearnedPolicy:
                 for h, h_new in zip(self._hidden, hidden_out, strict=True):
                     h[:, idx] = h_new
         out[idx_np] = torch.as_tensor(pred).reshape(-1, 3).double().cpu().numpy()
+        return out
+
+    def _bound_output(self, obs, depth: np.ndarray, active: np.ndarray, out: np.ndarray) -> np.ndarray:
+        bound, n = self._bound, self.num_envs
+        speed = np.asarray(_obs_field(obs, "desired_speed")).reshape(n)
+        quat = np.asarray(_obs_field(obs, "quat")).reshape(n, 4)
+        if active.all():  # the flight loop's usual tick: copies only
+            np.copyto(bound.depth.reshape(depth.shape), depth)
+            np.copyto(bound.desired_speed.reshape(n), speed, casting="same_kind")
+            np.copyto(bound.quat.reshape(n, 4), quat, casting="same_kind")
+            np.copyto(out, bound().reshape(n, 3))
+            return out
+        idx = np.flatnonzero(active)  # some envs done: the active rows through the unbound call, state kept
+        state = bound.hidden
+        hidden = None if state is None else tuple(np.ascontiguousarray(h[:, idx]) for h in state)
+        pred, hidden = self._step(np.ascontiguousarray(depth[idx, None, None]),
+                                  speed[idx].astype(np.float32).reshape(-1, 1, 1),
+                                  quat[idx].astype(np.float32).reshape(-1, 1, 4), hidden)  # fmt: skip
+        if state is not None:
+            for h, h_new in zip(state, hidden, strict=True):
+                h[:, idx] = h_new
+        out[idx] = np.asarray(pred).reshape(-1, 3)
         return out
 
     def __call__(self, obs) -> np.ndarray:

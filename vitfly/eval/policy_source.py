@@ -89,8 +89,15 @@ class PolicySource:
 
             precision = "int8" if self.backend == "onnxruntime-int8" else "fp32"
             providers = ["CUDAExecutionProvider"] if self.device.startswith("cuda") else None
+            calibration = None
+            if precision == "int8":
+                from vitfly.eval.agreement import calibration_depth
+                from vitfly.eval.latency import needs_calibration
+
+                calibration = calibration_depth() if needs_calibration(net) else None
             # exported on the fly, checked against eager; ONNX Runtime takes host arrays whatever its provider
-            step_fn = OnnxPolicyRunner(net, threads=self.threads, providers=providers, precision=precision)
+            step_fn = OnnxPolicyRunner(net, threads=self.threads, providers=providers, precision=precision,
+                                       calibration_depth=calibration)  # fmt: skip
             return LearnedPolicy(net, device="cpu", step_fn=step_fn)
         if self.backend == "compiled":  # encoder via torch.compile (without a compiler: one warning, eager)
             from vitfly.zoo import compile_encoder
