@@ -33,7 +33,8 @@ from vitfly.eval.agreement import (
 from vitfly.eval.latency import needs_calibration
 from vitfly.eval.learned_policy import LearnedPolicy
 from vitfly.eval.original_networks import ORIGINAL_NETWORKS
-from vitfly.zoo import create_model, load_network
+from vitfly.eval.policy_source import PolicySource
+from vitfly.zoo import create_model
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -42,7 +43,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--backends", nargs="+", default=["onnxruntime", "onnxruntime-int8"],
                         choices=list(COMMAND_TOLERANCE_MPS))  # fmt: skip
     parser.add_argument("--checkpoint", nargs="*", default=[], metavar="MODEL=PATH",
-                        help="fly these weights instead of seeded random ones")  # fmt: skip
+                        help="fly these weights instead of seeded random ones: a checkpoint path or "
+                             "pretrained:NAME (weights/)")  # fmt: skip
     parser.add_argument("--envs", nargs="+", default=["spheres", "trees"])
     parser.add_argument("--seeds", type=int, nargs="+", default=[0, 1])
     parser.add_argument("--speeds", type=float, nargs="+", default=[3.0, 5.0, 7.0])
@@ -66,7 +68,7 @@ def main(argv: list[str] | None = None) -> int:
     rows = []
     for model in args.models:
         torch.manual_seed(0)
-        net = load_network(checkpoints[model]) if model in checkpoints else create_model(model)
+        net = PolicySource(checkpoints[model]).load_network() if model in checkpoints else create_model(model)
         net = net.eval()
         weights = checkpoints.get(model, "random, seed 0")
         reference = replay_commands(LearnedPolicy(net), flights)

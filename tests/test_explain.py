@@ -264,7 +264,7 @@ def test_explain_replays_a_collected_trajectory_with_exact_edges(tmp_path, capsy
     "extra, message",
     [
         (["--policy", "missing.ckpt"], "missing.ckpt: no such checkpoint"),
-        (["--policy", "pretrained:vit_lstm"], "pretrained:vit_lstm: not in"),
+        (["--policy", "pretrained:resnet18"], "pretrained:resnet18: not in"),
         (["--policy", "random:vit_gru"], "unknown model 'vit_gru'"),
         (["--policy", "random:convnet", "--data", "x.h5", "--seed", "3"], "--seed only apply to a flown trial"),
     ],
