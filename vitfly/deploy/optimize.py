@@ -18,7 +18,10 @@
   into one smaller product; in the ViT+LSTM the decoder is folded into the LSTM's first input product;
 - in the ConvNet (batch-norm scales all positive, as trained ones are), batch norm and the min-pool's
   negations go into the convolutions, the average pool into fc0, the 0.1 speed scale into fc0's speed
-  column, and the head runs on 2-D rows (``_FoldedConvNet``).
+  column, and the head runs on 2-D rows (``_FoldedConvNet``);
+- where the state (speed, attitude) is concatenated to the image features (ConvNet's fc0, the LSTMnet's and
+  UNet+LSTM's first LSTM input), it enters through a product of its own (``StateSplitLSTM``), so the int8
+  path can keep it float32 and give the image weights their own scales.
 
 The original network is left untouched; the export checks the copy against it.
 """
