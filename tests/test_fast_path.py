@@ -53,13 +53,16 @@ def test_folded_convnet_is_the_same_function(weight_low):
         torch.testing.assert_close(fast(depth, speed, quat)[0], net(depth, speed, quat)[0], atol=1e-5, rtol=0)
 
 
-def test_gemm_rewrite_keeps_the_function_and_int8_quantises_the_large_products():
+def test_gemm_rewrite_keeps_the_function_and_int8_quantises_the_large_products(monkeypatch):
+    assert int(_int8_meta(quantize_int8(export_onnx_bytes(_convnet_with_bn(0.5), batch_size=1)))) == 0
+    # the ConvNet's products stay float32 by default (FLOAT32_LARGEST, for its trained weights); without:
+    monkeypatch.setattr("vitfly.deploy.quantize.FLOAT32_LARGEST", {})
     net = _convnet_with_bn(0.5)
     data = export_onnx_bytes(net, batch_size=1)  # the folded ConvNet's 2-D head exports as Gemm
     model = onnx.load_from_string(data)
-    assert sum(n.op_type == "Gemm" for n in model.graph.node) == 4
-    _gemms_as_matmuls(model, 16_384)  # fc0 (1265 x 256) and fc1 (256 x 64 = 16,384) become MatMul (+ Add)
-    assert [n.op_type for n in model.graph.node].count("Gemm") == 2
+    assert sum(n.op_type == "Gemm" for n in model.graph.node) == 5  # fc0's image and state columns apart
+    _gemms_as_matmuls(model, 16_384)  # fc0 (1260 x 256) and fc1 (256 x 64 = 16,384) become MatMul (+ Add)
+    assert [n.op_type for n in model.graph.node].count("Gemm") == 3
     depth, speed, quat = (x.numpy() for x in _sequence(1, 1, seed=2))
     before = OnnxPolicyRunner(data)(depth, speed, quat)[0]
     after = OnnxPolicyRunner(model.SerializeToString())(depth, speed, quat)[0]
@@ -75,6 +78,10 @@ def test_gemm_rewrite_keeps_the_function_and_int8_quantises_the_large_products()
     with torch.inference_mode():
         ref = net(*_sequence(1, 1, seed=2))[0].numpy()
     assert np.abs(runner(depth, speed, quat)[0] - ref).max() < 0.05 * max(1.0, np.abs(ref).max())
+
+
+def _int8_meta(data: bytes) -> str:
+    return {p.key: p.value for p in onnx.load_from_string(data).metadata_props}["vitfly.int8_products"]
 
 
 def test_compare_commands_by_hand():
@@ -112,15 +119,15 @@ def test_replay_batches_flights_as_the_rollout_would(flights):
     assert ramp[0] and together[0][ramp, 0] == pytest.approx(np.maximum(1.0, x[ramp] / 2.0 * 7.0))
 
 
-@pytest.mark.parametrize("name", ["convnet", "vit_lstm"])
-def test_fast_paths_fly_the_eager_commands(flights, name):
+@pytest.mark.parametrize(("name", "int8_products"), [("convnet", 0), ("vit_lstm", 6)])
+def test_fast_paths_fly_the_eager_commands(flights, name, int8_products):
     torch.manual_seed(0)
     net = create_model(name).eval()
     reference = replay_commands(LearnedPolicy(net), flights)
     for backend, precision in (("onnxruntime", "fp32"), ("onnxruntime-int8", "int8")):
         runner = OnnxPolicyRunner(net, precision=precision)
-        if precision == "int8":  # the large products are int8 in these two architectures
-            assert int(runner.session.get_modelmeta().custom_metadata_map["vitfly.int8_products"]) > 0
+        if precision == "int8":  # the ConvNet's stay float32 (FLOAT32_LARGEST), the ViT+LSTM's are int8
+            assert int(runner.session.get_modelmeta().custom_metadata_map["vitfly.int8_products"]) == int8_products
         fast = LearnedPolicy(net, step_fn=runner)
         agreement = compare_commands(reference, replay_commands(fast, flights))
         assert agreement.ticks == 150

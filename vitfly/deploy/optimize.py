@@ -18,7 +18,10 @@
   into one smaller product; in the ViT+LSTM the decoder is folded into the LSTM's first input product;
 - in the ConvNet (batch-norm scales all positive, as trained ones are), batch norm and the min-pool's
   negations go into the convolutions, the average pool into fc0, the 0.1 speed scale into fc0's speed
-  column, and the head runs on 2-D rows (``_FoldedConvNet``).
+  column, and the head runs on 2-D rows (``_FoldedConvNet``);
+- where the state (speed, attitude) is concatenated to the image features (ConvNet's fc0, the LSTMnet's and
+  UNet+LSTM's first LSTM input), it enters through a product of its own (``StateSplitLSTM``), so the int8
+  path can keep it float32 and give the image weights their own scales.
 
 The original network is left untouched; the export checks the copy against it.
 """
@@ -33,8 +36,10 @@ from torch import nn
 
 from vitfly.zoo.convnet import ConvNet
 from vitfly.zoo.layers import SPEED_SCALE, STATE_DIM, SNLinear
+from vitfly.zoo.lstmnet import LSTMNet
 from vitfly.zoo.mix_transformer import EfficientSelfAttention, MixFFN
 from vitfly.zoo.recurrent import lstm_inference
+from vitfly.zoo.unet_lstm import UNetLSTM
 from vitfly.zoo.vit import ViT
 from vitfly.zoo.vit_lstm import ViTLSTM
 
@@ -163,10 +168,10 @@ class FusedConvMixFFN(nn.Module):
 
 # GELU(x) ~ x * sigmoid(1.702 x) (|error| < 0.021): a sigmoid, which int8 kernels run as a 256-entry table
 QUICK_GELU = 1.702
-# the ViT stages whose int8 mix-FFNs take it: measured over recorded flights (random weights, seed 0) it took
-# the ViT from 0.26x to 0.24x the original and its largest command difference from 0.07 to 0.09 m/s; the
-# ViT+LSTM keeps the float GELU, its int8 products already use most of the 0.15 m/s tolerance
-QUICK_GELU_STAGES: dict[str, tuple[int, ...]] = {"vit": (0, 1)}
+# the ViT stages whose int8 mix-FFNs take it. None: with the shipped trained ViT (weights/) it moved the commands
+# over recorded flights by up to 0.38 m/s in both stages, 0.36 in stage 0 only, 0.13 in stage 1 only, against
+# 0.11 with the float GELU (tolerance 0.15 m/s; benchmarks/fast_path_agreement.py)
+QUICK_GELU_STAGES: dict[str, tuple[int, ...]] = {}
 
 
 def fuse_mix_ffns(backbone: nn.Module, gelu: str = "tanh", quick_gelu_stages: tuple[int, ...] = ()) -> None:
@@ -239,6 +244,38 @@ class UnrolledLSTM(nn.LSTM):
             zeros = x.new_zeros(self.num_layers, x.shape[0], self.hidden_size)
             hx = (zeros, zeros)
         return lstm_inference(self, x, hx)
+
+
+class StateSplitLSTM(UnrolledLSTM):
+    """An ``UnrolledLSTM`` whose input is ``cat(image features, state)`` (the last ``STATE_DIM`` columns), with
+    layer 0's input product split in two: ``features`` and ``state`` (5 columns, too small to quantise).
+
+    The same function. Trained weights on the state columns (speed, attitude) are several times larger than
+    on the image features, so one int8 scale per output channel over the whole row rounds the image weights
+    coarsely; split, the image product gets its own scales and the state product stays float32.
+    """
+
+    @classmethod
+    def from_lstm(cls, lstm: nn.LSTM) -> StateSplitLSTM:
+        new = super().from_lstm(lstm)
+        with torch.no_grad():
+            w_ih = lstm.weight_ih_l0
+            split = w_ih.shape[1] - STATE_DIM
+            new.features = nn.Linear(split, w_ih.shape[0], bias=lstm.bias)
+            new.features.weight.copy_(w_ih[:, :split])
+            if lstm.bias:
+                new.features.bias.copy_(lstm.bias_ih_l0 + lstm.bias_hh_l0)
+            new.state = nn.Linear(STATE_DIM, w_ih.shape[0], bias=False)
+            new.state.weight.copy_(w_ih[:, split:])
+        return new.eval()
+
+    def forward(self, x, hx=None):
+        if hx is None:
+            zeros = x.new_zeros(self.num_layers, x.shape[0], self.hidden_size)
+            hx = (zeros, zeros)
+        split = x.shape[-1] - STATE_DIM
+        gates = self.features(x[..., :split]) + self.state(x[..., split:])
+        return lstm_inference(self, None, hx, first_input_gates=gates)
 
 
 class FoldedViTHead(nn.Module):
@@ -350,10 +387,13 @@ class _FoldedConvNet(nn.Module):
             w_pooled = net.fc0.weight[:, :split].reshape(-1, 1, 10, 7, 12)
             w_full = F.conv_transpose2d(w_pooled.reshape(-1, 1, 7, 12), torch.full((1, 1, 3, 3), 1.0 / 9.0))
             w_image = w_full.reshape(net.fc0.out_features, -1)
-            self.fc0 = nn.Linear(w_image.shape[1] + STATE_DIM, net.fc0.out_features, bias=False)
-            w_state = net.fc0.weight[:, split:].clone()
-            w_state[:, 0] *= SPEED_SCALE  # the state is [speed, quat] here, not [0.1 * speed, quat]
-            self.fc0.weight.copy_(torch.cat((w_image, w_state), dim=1))
+            # the state columns apart (float32 in the int8 path): their trained weights, and the raw speed,
+            # are larger than the image's and would set the int8 scales (see StateSplitLSTM)
+            self.fc0 = nn.Linear(w_image.shape[1], net.fc0.out_features, bias=False)
+            self.fc0.weight.copy_(w_image)
+            self.fc0_state = nn.Linear(STATE_DIM, net.fc0.out_features, bias=False)
+            self.fc0_state.weight.copy_(net.fc0.weight[:, split:])
+            self.fc0_state.weight[:, 0] *= SPEED_SCALE  # the state is [speed, quat] here, not [0.1 * speed, quat]
         self.fc1, self.fc2, self.fc3 = net.fc1, net.fc2, net.fc3
 
     @staticmethod
@@ -370,11 +410,10 @@ class _FoldedConvNet(nn.Module):
         b, t = check_inputs(depth, desired_speed, quat)
         z = torch.clamp(self.conv1(depth.reshape(b * t, 1, IMAGE_HEIGHT, IMAGE_WIDTH)), max=0.0)
         x = F.relu(self.conv2(F.max_pool2d(z, 2, 1)))
+        x = self.fc0(x.flatten(1))
         if self.use_state:
-            state = torch.cat((desired_speed.reshape(b * t, 1), quat.reshape(b * t, 4)), dim=-1)
-        else:
-            state = quat.new_zeros(b * t, STATE_DIM)
-        x = F.leaky_relu(self.fc0(torch.cat((x.flatten(1), state), dim=-1)))
+            x = x + self.fc0_state(torch.cat((desired_speed.reshape(b * t, 1), quat.reshape(b * t, 4)), dim=-1))
+        x = F.leaky_relu(x)
         x = torch.tanh(self.fc2(F.leaky_relu(self.fc1(x))))
         return self.fc3(x).reshape(b, t, 3), None
 
@@ -409,6 +448,8 @@ def inference_copy(net: nn.Module, approximate_gelu: bool = False, fuse_ffn: boo
     if fuse_ffn and isinstance(copy_, (ViT, ViTLSTM)):
         fuse_mix_ffns(copy_, "tanh" if approximate_gelu else "none", QUICK_GELU_STAGES.get(copy_.model_name, ()))
     _replace_modules(copy_, "tanh" if approximate_gelu else "none")
+    if isinstance(copy_, (LSTMNet, UNetLSTM)):
+        copy_.lstm = StateSplitLSTM.from_lstm(copy_.lstm)
     if isinstance(copy_, ViT):
         copy_ = _FoldedViT(copy_).eval()
     elif isinstance(copy_, ViTLSTM):
