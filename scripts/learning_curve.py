@@ -5,7 +5,7 @@ published snapshots::
 
     STUDY/logs/metrics_<run>.csv           validation loss and lateral / vertical R^2 per epoch (CSV logger)
     STUDY/<snapshot>/manifest.json         which epoch each published snapshot (end/, middle/) holds
-    EVAL/<snapshot>/<run>/summary.csv      vitfly evaluate of pretrained:<run> from that snapshot
+    EVAL/<snapshot>/<run>/                 vitfly evaluate --name <run> of pretrained:<run> from that snapshot
 
     python scripts/learning_curve.py --study runs/gpu_study --eval runs/gpu_study/sel --out docs/learning_curves.png
 
@@ -26,7 +26,9 @@ import matplotlib
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 
-from vitfly.eval.findings import wilson  # noqa: E402
+from vitfly.eval import records  # noqa: E402
+from vitfly.eval.aggregate import summarize  # noqa: E402
+from vitfly.eval.findings import Table, wilson  # noqa: E402
 
 
 def validation_curve(metrics_csv: Path) -> list[dict]:
@@ -51,23 +53,18 @@ def snapshot_epoch(study: Path, snapshot: str, run: str) -> int | None:
     return int(Path(entry["source_checkpoint"]).stem.removeprefix("epoch")) + 1
 
 
-def closed_loop(summary_csv: Path) -> tuple[int, int, dict[float, float]]:
-    """(successes, trials) pooled over speeds, and success rate per speed."""
-    wins = trials = 0
-    per_speed = {}
-    with open(summary_csv) as f:
-        for r in csv.DictReader(f):
-            n = int(r["trials"])
-            k = round(float(r["success_paper_rate"]) * n)
-            wins, trials = wins + k, trials + n
-            per_speed[float(r["speed"])] = k / n
+def closed_loop(eval_dir: Path, run: str) -> tuple[int, int, dict[float, float]]:
+    """(successes, trials) of ``run`` pooled over speeds, and its success rate per speed."""
+    table = Table(summarize(records.read_sweep(eval_dir)))
+    wins, trials = table.pooled(run)
+    per_speed = {s: k / n for s in table.speeds(run) for k, n in [table.rate(run, s)]}
     return wins, trials, per_speed
 
 
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--study", type=Path, required=True, help="unpacked gpu_study output (logs/, end/, middle/)")
-    p.add_argument("--eval", type=Path, required=True, help="EVAL/<snapshot>/<run>/summary.csv evaluations")
+    p.add_argument("--eval", type=Path, required=True, help="EVAL/<snapshot>/<run>/ evaluation directories")
     p.add_argument("--runs", nargs="*", help="runs to show (default: every metrics_<run>.csv)")
     p.add_argument("--out", type=Path, required=True, help="PNG to write")
     args = p.parse_args(argv)
@@ -83,11 +80,11 @@ def main(argv: list[str] | None = None) -> int:
         ax_val.plot(epochs, [r["r2_vertical"] for r in curve], color=color, ls="--")
         points = []
         for snapshot in ("middle", "end"):
-            summary = args.eval / snapshot / run / "summary.csv"
+            eval_dir = args.eval / snapshot / run
             epoch = snapshot_epoch(args.study, snapshot, run)
-            if epoch is None or not summary.exists():
+            if epoch is None or not eval_dir.is_dir():
                 continue
-            wins, n, per_speed = closed_loop(summary)
+            wins, n, per_speed = closed_loop(eval_dir, run)
             lo, hi = wilson(wins, n)
             points.append((epoch, wins / n, lo, hi))
             val = next((r for r in curve if r["epoch"] == epoch), None)
