@@ -182,6 +182,8 @@ def test_optional_fields_round_trip_and_old_files_stay_valid(tmp_path):
     ({"evaluate": {"seed": 999}}, "evaluate.seed must be >= 1000"),
     ({"data": {"seed": 498}}, r"training flights must stay in \[0, 1000\)"),  # 498 + 500 + 2 rounds = 1000
     ({"schedule": {"beta0": 0.5}}, "set train.init_checkpoint"),
+    ({"train": {"init_checkpoint": "pretrained:lstmnet"}}, r"holds lstmnet .*, not train.model convnet"),
+    ({"train": {"init_checkpoint": "pretrained:nope"}}, r"pretrained:nope: not in .*manifest.json"),
     ({"schedule": {"decay": 1.5}}, r"schedule.decay must be in \[0, 1\]"),
     ({"data": {"collect": {"trajectories": 5}}}, "use data.expert_trajectories"),
     ({"train": {"colour": 1}}, "unknown field 'colour'"),
@@ -348,3 +350,15 @@ def test_init_weights_start_a_fine_tune_from_a_checkpoint(tiny_run, tmp_path):
             torch.testing.assert_close(got[k], v, msg=k)
     with pytest.raises(VitflyError, match="init_weights holds model 'convnet'"):
         train_policy(tiny_run.out / "data/dagger.h5", "lstmnet", tmp_path / "other", init_weights=init, **kwargs)
+
+
+def test_round_zero_can_start_from_the_shipped_weights(tmp_path):
+    from vitfly.workflows.dagger import _load_student, plan_stages
+    from vitfly.zoo.pretrained import manifest_entry
+
+    cfg = tiny(tmp_path / "run", schedule={"beta0": 0.5}, train={"init_checkpoint": "pretrained:convnet"})
+    student = _load_student(cfg, "pretrained:convnet")  # what round 0 flies beside the expert
+    assert type(student.net).__name__ == "ConvNet"
+    # the stages are keyed by the shipped file's hash: other weights under the same name start a new run
+    key = json.dumps([s.key for s in plan_stages(cfg)], default=str)
+    assert manifest_entry("convnet")["sha256"][:16] in key

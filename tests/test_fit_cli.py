@@ -232,3 +232,27 @@ def test_ckpt_path_that_is_not_a_vitfly_checkpoint_is_one_line(data_path, tmp_pa
     assert main(args) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert err[-1].startswith("vitfly: error: ") and "plain.pth: checkpoint has no hyper_parameters.model" in err[-1]
+
+
+def test_init_weights_starts_a_fit_from_the_shipped_weights(data_path, tmp_path, capsys):
+    from vitfly.zoo import load_pretrained
+
+    shipped = load_pretrained("convnet")
+    # lr 1e-12: Adam moves each weight by about lr per step, so the trained weights stay the shipped ones
+    assert main(fit_args(data_path, tmp_path / "ft", "--init_weights", "pretrained:convnet",
+                         "--model.init_args.lr", "1e-12", epochs=1)) == 0  # fmt: skip
+    state = torch.load(run_dir_of(tmp_path / "ft") / "checkpoints/last.ckpt", weights_only=True)["state_dict"]
+    for name, param in shipped.named_parameters():
+        torch.testing.assert_close(state[f"net.{name}"], param, rtol=0, atol=1e-6)
+    # without it the network starts from its random initialisation, far from the shipped weights
+    assert main(fit_args(data_path, tmp_path / "fresh", "--model.init_args.lr", "1e-12", epochs=1)) == 0
+    fresh = torch.load(run_dir_of(tmp_path / "fresh") / "checkpoints/last.ckpt", weights_only=True)["state_dict"]
+    with torch.no_grad():
+        assert max(float((fresh[f"net.{n}"] - p).abs().max()) for n, p in shipped.named_parameters()) > 0.01
+    # weights of another network: one line, non-zero exit
+    capsys.readouterr()
+    assert main(fit_args(data_path, tmp_path / "bad", "--init_weights", "pretrained:lstmnet", epochs=1)) != 0
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err == ["vitfly: error: pretrained:lstmnet: init_weights holds model 'lstmnet' (use_state=True), "
+                   "not 'convnet' (use_state=True)"]  # fmt: skip
+    assert not list((tmp_path / "bad").rglob("*.ckpt"))

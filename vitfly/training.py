@@ -125,17 +125,25 @@ def train_policy(
 
 
 def load_initial_weights(policy, path: str | os.PathLike, model: str, use_state: bool) -> None:
-    """Copy the network weights of checkpoint ``path`` into ``policy.net``; one line if it holds another network."""
+    """Copy the network weights of ``path`` into ``policy.net``: a checkpoint of the same network, or
+    ``pretrained:NAME`` (the shipped weights); one line if it holds another network."""
     from vitfly.zoo import load_network
     from vitfly.zoo.checkpoint import network_hparams, read_torch_file
+    from vitfly.zoo.pretrained import is_pretrained_spec, load_pretrained, manifest_entry, pretrained_name
 
-    hparams = network_hparams(read_torch_file(path), str(path))
-    if (hparams["model"], hparams["use_state"]) != (model, use_state):
+    pretrained = is_pretrained_spec(str(path))
+    if pretrained:
+        entry = manifest_entry(pretrained_name(str(path)))
+        stored = {"model": entry.get("model"), "use_state": entry.get("use_state")}
+    else:
+        stored = network_hparams(read_torch_file(path), str(path))
+    if (stored["model"], stored["use_state"]) != (model, use_state):
         raise VitflyError(
-            f"{path}: init_weights holds model {hparams['model']!r} (use_state={hparams['use_state']}), "
+            f"{path}: init_weights holds model {stored['model']!r} (use_state={stored['use_state']}), "
             f"not {model!r} (use_state={use_state})"
         )
-    policy.net.load_state_dict(load_network(path).state_dict())
+    net = load_pretrained(str(path)) if pretrained else load_network(path)
+    policy.net.load_state_dict(net.state_dict())
 
 
 def _check_same_run(last: Path, model: str, use_state: bool) -> None:

@@ -11,6 +11,8 @@ Defaults: CSV logger (TensorBoard or wandb via ``trainer.logger``; wandb stays o
 WANDB_MODE says otherwise), a rich progress bar, checkpoints ``checkpoints/best.ckpt`` (lowest
 ``val/loss``) and ``checkpoints/last.ckpt`` in the run directory (``checkpoint.*`` flags), and the
 train/validation split in ``split.json`` beside them. Resume with ``--ckpt_path .../last.ckpt``.
+Fine-tune with ``fit --init_weights pretrained:vit_lstm`` (or a checkpoint of the same network): the network
+starts from those weights, with a fresh optimiser and schedule; a resumed run ignores it.
 
 With ``--ckpt_path`` (any subcommand) the checkpoint decides the network: its architecture,
 ``use_state`` and ``model_kwargs`` replace the config's (one line says so when they differ), so a
@@ -59,6 +61,8 @@ class VitflyCLI(LightningCLI):
         parser.set_defaults({"trainer.use_distributed_sampler": False})
         # the datamodule records use_state with the split; the policy's value is the one that counts
         parser.link_arguments("model.init_args.use_state", "data.use_state")
+        parser.add_argument("--init_weights", type=str | None, default=None,
+                            help="fit: start the network from pretrained:NAME or a checkpoint of the same network")
 
     def parse_arguments(self, parser: LightningArgumentParser, args: Any) -> None:
         super().parse_arguments(parser, args)
@@ -94,6 +98,15 @@ class VitflyCLI(LightningCLI):
             f"(use_state={current['use_state']}, model_kwargs={current['model_kwargs']})",
             file=sys.stderr,
         )
+
+    def before_fit(self) -> None:
+        """``--init_weights``: copy the weights into the fresh network (a resumed run already holds its own)."""
+        config = self.config[self.subcommand]
+        if config.get("init_weights") and not config.get("ckpt_path"):
+            from vitfly.training import load_initial_weights
+
+            load_initial_weights(self.model, config.init_weights, self.model.hparams["model"],
+                                 self.model.hparams["use_state"])
 
     def before_instantiate_classes(self) -> None:
         config = self.config[self.subcommand] if self.subcommand else self.config

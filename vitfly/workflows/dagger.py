@@ -50,6 +50,7 @@ from vitfly.atomic import write_text
 from vitfly.errors import VitflyError
 from vitfly.eval.fingerprint import digest
 from vitfly.workflows.dagger_config import DaggerConfig, base_collect, eval_stage
+from vitfly.zoo.pretrained import is_pretrained_spec
 
 DAGGER_DATA = "data/dagger.h5"
 BC_DATA = "data/bc.h5"
@@ -105,9 +106,13 @@ def save_final_callback(path: Path):
 
 
 def _file_hash(path: str | None) -> str | None:
-    """SHA-256 of a file's bytes, 16 hex digits (None for None)."""
+    """SHA-256 of a file's bytes, 16 hex digits (None for None; ``pretrained:NAME``: its safetensors file)."""
     if path is None:
         return None
+    if is_pretrained_spec(path):
+        from vitfly.zoo.pretrained import manifest_entry, pretrained_name
+
+        return str(manifest_entry(pretrained_name(path))["sha256"])[:16]
     h = hashlib.sha256()
     with open(path, "rb") as f:
         for block in iter(lambda: f.read(1 << 22), b""):
@@ -301,14 +306,15 @@ def _expert_record(rec, round_index: int):
                                dagger_round=round_index, dagger_beta=1.0)
 
 
-def _load_student(cfg: DaggerConfig, checkpoint: Path):
+def _load_student(cfg: DaggerConfig, checkpoint: Path | str):
     from vitfly.eval.learned_policy import LearnedPolicy
-    from vitfly.zoo import load_network
+    from vitfly.zoo import load_network, load_pretrained
 
-    return LearnedPolicy(load_network(checkpoint), device=cfg.evaluate.device)
+    net = load_pretrained(str(checkpoint)) if is_pretrained_spec(str(checkpoint)) else load_network(checkpoint)
+    return LearnedPolicy(net, device=cfg.evaluate.device)
 
 
-def stage_collect(cfg: DaggerConfig, stage: Stage, student: Path | None, progress: bool = True,
+def stage_collect(cfg: DaggerConfig, stage: Stage, student: Path | str | None, progress: bool = True,
                   on_trajectory: Callable[[int], None] | None = None) -> dict:
     """Fly round ``stage.round``'s trajectories not yet in the DAgger dataset and append each as it ends."""
     from vitfly.sim.collect import ordered_records, start_pool, trajectory_spec
@@ -642,7 +648,7 @@ def _run_stage(cfg: DaggerConfig, stage: Stage, results: dict, progress: bool, c
         if r > 0:
             student = Path(results[f"r{r - 1}.train"]["checkpoint"])
         elif cfg.schedule.beta(0) < 1.0:
-            student = Path(cfg.train.init_checkpoint)
+            student = cfg.train.init_checkpoint  # a checkpoint path or pretrained:NAME
         return stage_collect(cfg, stage, student, progress, callback)
     if stage.kind == "train":
         return stage_train(cfg, stage, False, progress)

@@ -73,7 +73,7 @@ class DaggerTrain:
     finetune_policy_kwargs: dict = field(default_factory=dict)  # merged over policy_kwargs for rounds >= 1
     data_kwargs: dict = field(default_factory=dict)  # TrajectoryDataModule
     trainer_kwargs: dict = field(default_factory=dict)  # lightning.Trainer
-    init_checkpoint: str | None = None  # a behaviour-cloned checkpoint to start round 0's training from
+    init_checkpoint: str | None = None  # a behaviour-cloned checkpoint (or pretrained:NAME) to start round 0 from
 
 
 @dataclass
@@ -227,7 +227,15 @@ def check_config(cfg: DaggerConfig, source: str) -> None:
                           "train.epochs / train.finetune_epochs")
     if "split_file" in t.data_kwargs:
         raise VitflyError(f"{source}: train.data_kwargs.split_file is set by the workflow (round 0's split)")
-    if t.init_checkpoint is not None and not Path(t.init_checkpoint).is_file():
+    if t.init_checkpoint is not None and t.init_checkpoint.startswith("pretrained:"):
+        from vitfly.zoo.pretrained import manifest_entry, pretrained_name
+
+        entry = manifest_entry(pretrained_name(t.init_checkpoint))
+        if (entry.get("model"), entry.get("use_state")) != (t.model, t.use_state):
+            raise VitflyError(f"{source}: train.init_checkpoint {t.init_checkpoint} holds {entry.get('model')} "
+                              f"(use_state={entry.get('use_state')}), not train.model {t.model} "
+                              f"(use_state={t.use_state})")
+    elif t.init_checkpoint is not None and not Path(t.init_checkpoint).is_file():
         raise VitflyError(f"{source}: train.init_checkpoint {t.init_checkpoint}: no such checkpoint file")
     for b in e.baselines:
         if b not in ("expert", "straight"):
