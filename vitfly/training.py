@@ -127,23 +127,15 @@ def train_policy(
 def load_initial_weights(policy, path: str | os.PathLike, model: str, use_state: bool) -> None:
     """Copy the network weights of ``path`` into ``policy.net``: a checkpoint of the same network, or
     ``pretrained:NAME`` (the shipped weights); one line if it holds another network."""
-    from vitfly.zoo import load_network
-    from vitfly.zoo.checkpoint import network_hparams, read_torch_file
-    from vitfly.zoo.pretrained import is_pretrained_spec, load_pretrained, manifest_entry, pretrained_name
+    from vitfly.zoo.pretrained import load_weights, weights_identity
 
-    pretrained = is_pretrained_spec(str(path))
-    if pretrained:
-        entry = manifest_entry(pretrained_name(str(path)))
-        stored = {"model": entry.get("model"), "use_state": entry.get("use_state")}
-    else:
-        stored = network_hparams(read_torch_file(path), str(path))
+    stored = weights_identity(path)
     if (stored["model"], stored["use_state"]) != (model, use_state):
         raise VitflyError(
             f"{path}: init_weights holds model {stored['model']!r} (use_state={stored['use_state']}), "
             f"not {model!r} (use_state={use_state})"
         )
-    net = load_pretrained(str(path)) if pretrained else load_network(path)
-    policy.net.load_state_dict(net.state_dict())
+    policy.net.load_state_dict(load_weights(path).state_dict())
 
 
 def _check_same_run(last: Path, model: str, use_state: bool) -> None:

@@ -66,13 +66,9 @@ class PolicySource:
         return load_sensor(self.spec)
 
     def load_network(self):
-        if self.is_pretrained:
-            from vitfly.zoo.pretrained import load_pretrained
+        from vitfly.zoo.pretrained import load_weights
 
-            return load_pretrained(self.spec)
-        from vitfly.zoo import load_network
-
-        return load_network(self.spec, arch=self.arch)
+        return load_weights(self.spec, arch=self.arch)
 
     def build(self):
         """The policy object for the rollout engine."""

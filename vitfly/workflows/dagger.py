@@ -308,10 +308,9 @@ def _expert_record(rec, round_index: int):
 
 def _load_student(cfg: DaggerConfig, checkpoint: Path | str):
     from vitfly.eval.learned_policy import LearnedPolicy
-    from vitfly.zoo import load_network, load_pretrained
+    from vitfly.zoo.pretrained import load_weights
 
-    net = load_pretrained(str(checkpoint)) if is_pretrained_spec(str(checkpoint)) else load_network(checkpoint)
-    return LearnedPolicy(net, device=cfg.evaluate.device)
+    return LearnedPolicy(load_weights(checkpoint), device=cfg.evaluate.device)
 
 
 def stage_collect(cfg: DaggerConfig, stage: Stage, student: Path | str | None, progress: bool = True,

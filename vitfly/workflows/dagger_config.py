@@ -228,12 +228,12 @@ def check_config(cfg: DaggerConfig, source: str) -> None:
     if "split_file" in t.data_kwargs:
         raise VitflyError(f"{source}: train.data_kwargs.split_file is set by the workflow (round 0's split)")
     if t.init_checkpoint is not None and t.init_checkpoint.startswith("pretrained:"):
-        from vitfly.zoo.pretrained import manifest_entry, pretrained_name
+        from vitfly.zoo.pretrained import weights_identity
 
-        entry = manifest_entry(pretrained_name(t.init_checkpoint))
-        if (entry.get("model"), entry.get("use_state")) != (t.model, t.use_state):
-            raise VitflyError(f"{source}: train.init_checkpoint {t.init_checkpoint} holds {entry.get('model')} "
-                              f"(use_state={entry.get('use_state')}), not train.model {t.model} "
+        held = weights_identity(t.init_checkpoint)
+        if (held["model"], held["use_state"]) != (t.model, t.use_state):
+            raise VitflyError(f"{source}: train.init_checkpoint {t.init_checkpoint} holds {held['model']} "
+                              f"(use_state={held['use_state']}), not train.model {t.model} "
                               f"(use_state={t.use_state})")
     elif t.init_checkpoint is not None and not Path(t.init_checkpoint).is_file():
         raise VitflyError(f"{source}: train.init_checkpoint {t.init_checkpoint}: no such checkpoint file")

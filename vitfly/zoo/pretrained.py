@@ -178,6 +178,26 @@ def load_pretrained(name: str, directory: str | os.PathLike | None = None) -> nn
     return net.eval()
 
 
+def load_weights(spec: str | os.PathLike, arch: str | None = None) -> nn.Module:
+    """The network ``spec`` names: ``pretrained:NAME`` (the weights directory) or a checkpoint path
+    (``vitfly.zoo.load_network``, ``arch`` for original-project state dicts)."""
+    from vitfly.zoo.checkpoint import load_network
+
+    return load_pretrained(str(spec)) if is_pretrained_spec(str(spec)) else load_network(spec, arch=arch)
+
+
+def weights_identity(spec: str | os.PathLike) -> dict:
+    """``{"model", "use_state"}`` of the network ``spec`` names, read without building it (manifest entry or
+    checkpoint hyper-parameters)."""
+    from vitfly.zoo.checkpoint import network_hparams
+
+    if is_pretrained_spec(str(spec)):
+        entry = manifest_entry(pretrained_name(str(spec)))
+        return {"model": entry.get("model"), "use_state": entry.get("use_state")}
+    hparams = network_hparams(read_torch_file(spec), str(spec))
+    return {"model": hparams["model"], "use_state": hparams["use_state"]}
+
+
 def _checkpoint_parts(ckpt_path: str | os.PathLike) -> tuple[nn.Module, dict, dict]:
     """(network, hyper_parameters, the checkpoint's own provenance: epochs, steps) of a vitfly checkpoint."""
     from vitfly.zoo.checkpoint import network_from_checkpoint_dict, read_sensor
