@@ -60,6 +60,18 @@ def test_window_wall_has_one_passable_opening(seed):
     assert signed_distances(((x0 + x1) / 2, y_lo - 0.5, 5.0), sc).min() < 0  # beside it is wall
     # the wall spans the whole corridor: a straight line at z = 3.5 crosses it unless it is in the opening
     assert (signed_distances(((x0 + x1) / 2, 9.0, 3.5), sc) < 0).any()
+    # the opening is beside the start line y = 0, its nearer edge 0.5-2 m away: flying straight meets the wall
+    # at every height the flight could have, and so does a drone 0.4 m wide
+    near_edge = min(abs(y_lo), abs(y_hi))
+    assert y_lo * y_hi > 0 and 0.5 <= near_edge <= 2.0
+    for y in (-0.2, 0.0, 0.2):
+        for z in (1.0, 3.5, 6.0):
+            assert signed_distances(((x0 + x1) / 2, y, z), sc).min() < 0
+
+
+def test_window_openings_are_on_both_sides():
+    sides = {np.sign(make_scene("window", "medium", seed).boxes[0, 4]) for seed in range(20)}
+    assert sides == {-1.0, 1.0}
 
 
 @pytest.mark.parametrize("env", ["trees", "window"])

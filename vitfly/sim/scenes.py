@@ -61,16 +61,19 @@ class TreesConfig:
 
 @dataclass(frozen=True)
 class WindowConfig:
-    """A wall across the flight path (normal along x) with one rectangular opening.
+    """A wall across the flight path (normal along x) with one rectangular opening beside the start line.
 
-    The wall's x position, and the opening's size and centre, are drawn from the seed.
+    The wall's x position, the opening's size, its side (left or right, at random), its lateral offset and its
+    height are drawn from the seed. The opening's nearer edge lies ``opening_offset_y`` beside the line y = 0 that
+    the drone starts on, so flying straight always meets the wall: as in the paper, only a tight bundle of paths,
+    which turn towards the opening, gets through.
     """
 
     wall_x: tuple[float, float] = (20.0, 40.0)
     thickness: float = 0.3
     opening_width: tuple[float, float] = (1.5, 3.0)
     opening_height: tuple[float, float] = (1.5, 3.0)
-    opening_center_y: tuple[float, float] = (-3.0, 3.0)
+    opening_offset_y: tuple[float, float] = (0.5, 2.0)  # m from y = 0 to the opening's nearer side edge
     opening_center_z: tuple[float, float] = (2.0, 5.0)
     region: Region = field(default_factory=Region)
 
@@ -283,7 +286,9 @@ def _window(cfg: WindowConfig, rng: np.random.Generator) -> np.ndarray:
     r = cfg.region
     wall_x = rng.uniform(*cfg.wall_x)
     w, h = rng.uniform(*cfg.opening_width), rng.uniform(*cfg.opening_height)
-    cy, cz = rng.uniform(*cfg.opening_center_y), rng.uniform(*cfg.opening_center_z)
+    side = 1.0 if rng.uniform() < 0.5 else -1.0  # left (+y) or right (-y) of the start line
+    cy = side * (rng.uniform(*cfg.opening_offset_y) + w / 2)
+    cz = rng.uniform(*cfg.opening_center_z)
     y0, y1 = max(cy - w / 2, r.y[0]), min(cy + w / 2, r.y[1])
     z0, z1 = max(cz - h / 2, r.z[0]), min(cz + h / 2, r.z[1])
     x0, x1 = wall_x - cfg.thickness / 2, wall_x + cfg.thickness / 2
