@@ -194,6 +194,15 @@ def test_bad_config_is_one_line(tmp_path, sections, message):
         tiny(tmp_path / "run", **sections)
 
 
+@pytest.mark.parametrize("preset", ["tiny", "laptop", "laptop_vit_lstm", "paper"])
+def test_every_shipped_preset_loads_and_checks(preset):
+    cfg = load_dagger_config(CONFIG, preset)  # check_config runs inside: pretrained weights, seeds, speeds
+    assert cfg.preset == preset and cfg.out.endswith(preset.replace("laptop_", "laptop-"))
+    if preset == "laptop_vit_lstm":  # the target network from the shipped weights, one epoch a round
+        assert (cfg.train.model, cfg.train.init_checkpoint) == ("vit_lstm", "pretrained:vit_lstm")
+        assert cfg.train.epochs == cfg.train.finetune_epochs == 1
+
+
 def test_training_seeds_are_disjoint_from_evaluation_seeds():
     cfg = load_dagger_config(CONFIG, "laptop")
     seeds = [cfg.collect_seed(r, baseline) for r in cfg.rounds for baseline in (False, True)]
@@ -248,6 +257,7 @@ def test_tiny_end_to_end(tiny_run):
         assert {r.scene_seed for r in mine} == {derive_scene_seed(1000, "spheres", k) for k in (0, 1)}
     md = (out / "dagger.md").read_text()
     assert "| 2 | 0.250 |" in md and "BC (equal frames)" in md and "Target" in md
+    assert "expert flights (shared by both methods)" in md  # round 0 from scratch: no "starting from"
 
 
 def test_datasets_tag_rounds_and_match_frames(tiny_run):
