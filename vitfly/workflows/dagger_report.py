@@ -117,14 +117,13 @@ def _cell_text(row: dict | None) -> str:
 def markdown(cfg: DaggerConfig, rows: list[dict], target: dict, results: dict) -> str:
     speeds = [float(s) for s in cfg.evaluate.speeds]
     t, e = cfg.train, cfg.evaluate
+    start = f", starting from {t.init_checkpoint}" if t.init_checkpoint else ""
     lines = [f"# DAgger vs behaviour cloning at equal labelled frames ({t.model}, preset {cfg.preset})", "",
              f"Each cell: success (no collision) over {e.trials} trials with its 95 % Wilson interval · mean "
              f"collisions per trial; {e.preset} scenes from evaluation seed {e.seed}, never flown in training. "
-             f"Round 0 is behaviour cloning on {cfg.data.expert_trajectories} expert flights"
-             + (f", starting from {t.init_checkpoint}" if t.init_checkpoint else "")
-             + f" (shared by both methods); each later round adds {cfg.data.trajectories_per_round} flights of "
-             "the previous student "
-             f"mixed with the expert (beta_i = {cfg.schedule.beta0:g} x {cfg.schedule.decay:g}^i) for DAgger, "
+             f"Round 0 is behaviour cloning on {cfg.data.expert_trajectories} expert flights{start} (shared by "
+             f"both methods); each later round adds {cfg.data.trajectories_per_round} flights of the previous "
+             f"student mixed with the expert (beta_i = {cfg.schedule.beta0:g} x {cfg.schedule.decay:g}^i) for DAgger, "
              "or expert flights up to the same number of labelled frames for BC, and fine-tunes for the same "
              "number of optimiser steps.", ""]
     for env in e.env:
