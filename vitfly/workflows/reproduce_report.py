@@ -91,12 +91,18 @@ def _training_table(cfg: ReproduceConfig) -> str:
         if ckpt is None:
             lines.append(f"| {run_label(model, use_state)} | - | - | - | - | not trained |")
             continue
-        saved = torch.load(d / "checkpoints" / "last.ckpt", map_location="cpu", weights_only=True) \
-            if (d / "checkpoints" / "last.ckpt").exists() else {}
         cost = json.loads((d / "cost.json").read_text()) if (d / "cost.json").exists() else {}
         frames = train_frames(d, cfg.data)
         wall = f"{cost['wall_s'] / 60:.1f}" if "wall_s" in cost else "-"
-        epochs, steps = saved.get("epoch", -1) + 1, saved.get("global_step", "-")
+        # a run trained elsewhere (scripts/gpu_reproduce.py) comes back without last.ckpt; done.json says
+        elsewhere = json.loads((d / "done.json").read_text()).get("trained_on")
+        if elsewhere:
+            epochs, steps = elsewhere["epochs"], elsewhere["steps"]
+            wall += f" ({elsewhere['device']})"
+        else:
+            saved = torch.load(d / "checkpoints" / "last.ckpt", map_location="cpu", weights_only=True) \
+                if (d / "checkpoints" / "last.ckpt").exists() else {}
+            epochs, steps = saved.get("epoch", -1) + 1, saved.get("global_step", "-")
         lines.append(f"| {run_label(model, use_state)} | {epochs} | {steps} | {frames if frames is not None else '-'} "
                      f"| {wall} | {ckpt} |")
     return "\n".join(lines) + "\n"
