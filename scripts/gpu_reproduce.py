@@ -209,8 +209,9 @@ def unpack(args: argparse.Namespace) -> int:
         if (dst / "done.json").exists():
             print(f"{dst}: has a done.json; left alone")
             continue
-        if dst.exists():
-            shutil.rmtree(dst)  # an unfinished local attempt: the returned run replaces it
+        if dst.exists():  # an unfinished local attempt: the finished run replaces it
+            print(f"{dst}: unfinished here; replaced by the returned run")
+            shutil.rmtree(dst)
         shutil.move(str(run), dst)
         done = json.loads((dst / "done.json").read_text())
         done["checkpoint"] = str((dst / done["checkpoint"]).resolve())
