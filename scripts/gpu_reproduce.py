@@ -38,7 +38,6 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
-PIECE_BYTES = 15 * 2**20  # the device tool returns files of at most 16 MiB
 DROPPED_KEYS = ("optimizer_states", "lr_schedulers", "callbacks", "loops")  # resume state, not the network
 
 
@@ -76,21 +75,17 @@ def train_one(args: argparse.Namespace) -> int:
 
 
 def slim_checkpoint(src: Path, dst: Path) -> dict:
-    """``src`` without optimiser/loop state and with the network's floating weights in fp16."""
+    """``src`` without optimiser/loop state, its state dict only the network's weights, floating ones in fp16."""
     import torch
+
+    from vitfly.zoo.checkpoint import NET_PREFIX, network_from_checkpoint_dict
+    from vitfly.zoo.pretrained import fp16_state_dict
 
     obj = torch.load(src, map_location="cpu", weights_only=True)
     for key in DROPPED_KEYS:
         obj.pop(key, None)
-    state = {}
-    for name, value in obj["state_dict"].items():
-        if name.startswith("net.") and value.is_floating_point():
-            half = value.half()
-            if not torch.isfinite(half).all():
-                raise SystemExit(f"{src}: {name} does not fit fp16")
-            value = half
-        state[name] = value
-    obj["state_dict"] = state
+    net = network_from_checkpoint_dict(obj, str(src))
+    obj["state_dict"] = {NET_PREFIX + k: v for k, v in fp16_state_dict(net, str(src)).items()}
     torch.save(obj, dst)
     return {"epoch": int(obj.get("epoch", -1)), "global_step": int(obj.get("global_step", -1))}
 
@@ -98,6 +93,8 @@ def slim_checkpoint(src: Path, dst: Path) -> dict:
 def pack(cfg, labels: list[str], out: Path, work: Path) -> list[str]:
     """The finished runs, slimmed, as ``out/runs.tar.NNN`` pieces; returns the labels packed."""
     import torch
+
+    from scripts.gpu_study import write_pieces
 
     stage_dir = work / "pack"
     shutil.rmtree(stage_dir, ignore_errors=True)
@@ -126,9 +123,7 @@ def pack(cfg, labels: list[str], out: Path, work: Path) -> list[str]:
     with tarfile.open(tar_path, "w") as tar:
         for label in packed:
             tar.add(stage_dir / label, arcname=label)
-    with open(tar_path, "rb") as f:
-        for i, piece in enumerate(iter(lambda: f.read(PIECE_BYTES), b"")):
-            (out / f"runs.tar.{i:03d}").write_bytes(piece)
+    write_pieces(tar_path, out)
     return packed
 
 

@@ -237,10 +237,15 @@ def pack(out: Path, pub: Path, work: Path, logs: Path) -> list[str]:
         for folder in (pub / "end", pub / "middle", logs):
             if folder.exists():
                 tar.add(folder, arcname=folder.name)
+    return write_pieces(tar_path, out)
+
+
+def write_pieces(path: Path, out: Path) -> list[str]:
+    """``path`` split into ``out/<name>.NNN`` files the device tool returns (``cat`` joins them)."""
     pieces = []
-    with open(tar_path, "rb") as f:
+    with open(path, "rb") as f:
         for i, block in enumerate(iter(lambda: f.read(PIECE_BYTES), b"")):
-            piece = out / f"study.tar.{i:03d}"
+            piece = out / f"{path.name}.{i:03d}"
             piece.write_bytes(block)
             pieces.append(piece.name)
     return pieces
