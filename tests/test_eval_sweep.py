@@ -116,6 +116,10 @@ def test_expert_and_learned_policy_share_scenes_and_report(tmp_path, capsys):
     assert {r.policy for r in recs} == {"expert", "tiny_convnet"}
     seeds = {p: sorted(r.scene_seed for r in recs if r.policy == p) for p in ("expert", "tiny_convnet")}
     assert seeds["expert"] == seeds["tiny_convnet"]
+    # two policies on the same scenes: paired.csv compares them scene by scene (success, collisions)
+    paired = (out / "paired.csv").read_text().splitlines()
+    assert paired[0].startswith("env,metric,a,b,speed,pairs") and len(paired) == 3
+    assert paired[1].startswith("spheres,success,expert,tiny_convnet,4,2,2,")
     learned = [r for r in recs if r.policy == "tiny_convnet"]
     assert all(r.metrics["processing_ms"] > 0 for r in learned)
     assert all(r.extra["backend"] == "eager" for r in learned)

@@ -263,3 +263,5 @@ def test_pretrained_source_evaluates_and_records_closed_loop(tmp_path, monkeypat
     assert entry["steps"] == 7  # the published entry otherwise unchanged
     results = (tmp_path / "study" / "results.md").read_text()
     assert "| pretrained:convnet | test | 7 | 123 |" in results
+    # straight flight and the ConvNet flew the same two scenes: the paired section compares them
+    assert "## Paired comparisons" in results and "ResNet-18 and ConvNet not flown on shared scenes" in results

@@ -97,6 +97,9 @@ def test_tiny_study_resumes_after_a_kill_in_every_stage(tmp_path):
     assert results["preset"] == "tiny" and len(results["findings"]) == 11
     md = (out / "results.md").read_text()
     assert "## Findings" in md and "## Ablation: state input" in md and "| ConvNet | 235,269 | 235,269 |" in md
+    # the paired section: every paired finding, and ViT+LSTM against ConvNet on the same spheres scenes
+    assert "## Paired comparisons" in md and len(results["paired_findings"]) == 9
+    assert "| ConvNet | " in md.split("ViT+LSTM's success minus each policy's in spheres")[1]
     for name in ("spheres_collision_metrics", "trees_collision_metrics", "command_characteristics",
                  "paths_fixed_scene", "paths_fixed_scene_3d", "window_paths"):
         assert (out / "figures" / f"{name}.png").stat().st_size > 10_000, name

@@ -19,6 +19,7 @@ from vitfly.eval import plots, records
 from vitfly.eval.aggregate import summarize
 from vitfly.eval.config import SweepConfig
 from vitfly.eval.fingerprint import SweepIdentity
+from vitfly.eval.paired import paired_csv, paired_rows
 from vitfly.eval.policy_source import PolicySource
 from vitfly.eval.report import write_reports
 from vitfly.eval.sweep import SweepOutcome, plan_trials, policy_source, rollout_config, run_sweep, sweep_identity
@@ -51,6 +52,9 @@ def write_outputs(out_dir: str | Path, with_plots: bool = True, title: str | Non
     records.check_consistent(recs, str(out_dir))
     rows = summarize(recs)
     files = dict(write_reports(out_dir, rows, title))
+    if len({r.policy for r in recs}) > 1:  # policies flown on the same scenes: their paired differences
+        files["paired"] = Path(out_dir) / "paired.csv"
+        write_text(files["paired"], paired_csv(paired_rows(recs)))
     if with_plots:
         files.update(plots.write_standard_plots(
             out_dir, rows, recs, scene_loader=lambda env, preset, seed: scene_of(recs, env, preset, seed)))

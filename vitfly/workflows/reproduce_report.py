@@ -127,6 +127,7 @@ def stage_report(cfg: ReproduceConfig) -> dict:
     from vitfly.eval import paper_figures
     from vitfly.eval.evaluation import scene_of
     from vitfly.eval.findings import findings_markdown, paper_findings
+    from vitfly.eval.paired_findings import paired_findings
     from vitfly.eval.plots import plot_paths, scene_for_paths
 
     out, figures = cfg.out_dir, cfg.out_dir / "figures"
@@ -169,9 +170,12 @@ def stage_report(cfg: ReproduceConfig) -> dict:
         latency_md = latency_markdown(json.loads((out / "latency.json").read_text())["results"])
         write_text(out / "latency.md", latency_md)
     findings = paper_findings(rows["spheres"], rows["trees"], rows["window"], rows["ablation"], lateral)
-    text = results_markdown(cfg, findings_markdown(findings), files, ablation_md, latency_md, lateral)
+    paired = paired_findings(recs["spheres"], recs["trees"], recs["window"], recs["ablation"])
+    paired_md = paired_markdown(paired, recs)
+    text = results_markdown(cfg, findings_markdown(findings), files, ablation_md, latency_md, lateral, paired_md)
     write_text(out / "results.md", text)
     result = {"preset": cfg.preset, "findings": [f.to_dict() for f in findings],
+              "paired_findings": [f.to_dict() for f in paired],
               "max_mean_lateral_deviation_m": lateral,
               "files": {k: str(v) for k, v in files.items()}, "config": dataclasses.asdict(cfg)}
     write_text(out / "results.json", json.dumps(result, indent=2, default=str) + "\n")
@@ -180,7 +184,20 @@ def stage_report(cfg: ReproduceConfig) -> dict:
     elif cfg.train.publish_weights:
         _publish_closed_loop(cfg, rows)
     print(f"[report] {out / 'results.md'}: " + ", ".join(f"{f.key} {f.verdict}" for f in findings))
+    print("[report] paired: " + ", ".join(f"{f.key} {f.verdict}" for f in paired))
     return result
+
+
+def paired_markdown(paired: list, recs: dict[str, list | None]) -> str:
+    """The paired findings table, then ViT+LSTM's success against every other policy in each sweep."""
+    from vitfly.eval.paired_findings import lead_table, paired_findings_markdown
+
+    parts = [paired_findings_markdown(paired)]
+    for sweep in ("spheres", "trees", "window"):
+        if recs.get(sweep) and any(r.policy == "vit_lstm" for r in recs[sweep]):
+            parts += [f"ViT+LSTM's success minus each policy's in {sweep} (paired over the same scenes; "
+                      "* the 95 % interval excludes 0):", "", lead_table(recs[sweep], sweep)]
+    return "\n".join(parts)
 
 
 def _publish_closed_loop(cfg: ReproduceConfig, rows: dict) -> None:
@@ -205,7 +222,7 @@ def _record_closed_loop(cfg: ReproduceConfig, rows: dict) -> None:
 
 
 def results_markdown(cfg: ReproduceConfig, findings_md: str, files: dict[str, Path], ablation_md: str,
-                     latency_md: str, lateral: dict[str, float]) -> str:
+                     latency_md: str, lateral: dict[str, float], paired_md: str = "") -> str:
     e = cfg.evaluate
     rel = {k: os.path.relpath(v, cfg.out_dir) for k, v in files.items()}
     figure_lines = [f"- {k.replace('_', ' ')}: ![{k}]({v})" for k, v in rel.items()]
@@ -226,6 +243,14 @@ def results_markdown(cfg: ReproduceConfig, findings_md: str, files: dict[str, Pa
         "## Findings",
         "",
         findings_md,
+        "## Paired comparisons",
+        "",
+        "Every policy flies the same scenes, so two policies are compared scene by scene: the difference of a "
+        "metric with a 95 % paired-bootstrap interval over scenes (BCa, 10,000 resamples; a resample keeps all "
+        "speeds of a drawn scene), and for success McNemar's exact test beside it. A claim is decided when its "
+        "interval excludes 0 (vitfly.eval.paired).",
+        "",
+        paired_md or "(no trials yet)",
         "## Training",
         "",
         _training_table(cfg),

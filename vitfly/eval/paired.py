@@ -1,0 +1,212 @@
+"""Paired comparisons of two policies flown on the same scenes.
+
+Every policy of a sweep flies trial ``k`` of an env in the scene of seed ``derive_scene_seed(seed, env, k)``,
+at every speed (``vitfly.eval.sweep``). So two policies are compared on pairs: the difference of a metric
+between them, scene by scene, cancels the scene's own difficulty, which unpaired rates with their separate
+intervals cannot. This module gives that difference with a 95 % interval.
+
+Interval: a paired bootstrap over scenes (``scipy.stats.bootstrap``, BCa, 10,000 resamples, seeded).
+A resample draws scenes with replacement and keeps every speed flown in each drawn scene with both of its
+policies' trials, so the interval respects both the pairing and the scenes shared across speeds; the
+statistic is the mean difference over the resampled (scene, speed) pairs. Why a bootstrap and not a
+formula: one method serves every metric (success as 0/1, collisions per trial, energy cost, commanded
+acceleration), skewed counts included, with no normal approximation. For success, McNemar's exact test of
+the discordant pairs (one policy succeeded, the other failed) is given beside it (``mcnemar_p``), the
+classical paired test for 0/1 outcomes; verdicts rest on the interval.
+
+A difference is *decided* when its interval excludes 0. ``verdict`` says which policy is better, or
+``cannot tell``; the interval's half-width is the smallest difference the study could have told apart.
+"""
+
+from __future__ import annotations
+
+import itertools
+import math
+import warnings
+from collections import defaultdict
+from collections.abc import Iterable, Sequence
+from dataclasses import asdict, dataclass
+
+import numpy as np
+from scipy.stats import binomtest, bootstrap
+
+from vitfly.errors import VitflyError
+from vitfly.eval.aggregate import AGGREGATED_METRICS
+from vitfly.eval.records import TrialRecord
+
+# metric name -> (how to read it from a record, True when a higher value is better)
+OUTCOMES = {"success": ("success_paper", True), "success_strict": ("success_strict", True)}
+LOWER_IS_BETTER = ("collisions", "time_in_collision", "energy_cost", "cmd_acc", "lateral_dev_max")
+METRICS = (*OUTCOMES, *LOWER_IS_BETTER, "speed_ratio")
+HIGHER_IS_BETTER = {**{m: OUTCOMES[m][1] for m in OUTCOMES}, **{m: False for m in LOWER_IS_BETTER},
+                    "speed_ratio": True}
+RESAMPLES = 10_000
+CONFIDENCE = 0.95
+
+
+@dataclass(frozen=True)
+class PairedDifference:
+    """``a`` minus ``b`` on one metric over the (scene, speed) pairs both flew.
+
+    ``diff`` is mean(a) - mean(b) over those pairs (for success: a fraction in [-1, 1]), ``low`` and
+    ``high`` its 95 % paired-bootstrap interval. For success, ``a_only`` / ``b_only`` count the discordant
+    pairs and ``mcnemar_p`` is McNemar's exact two-sided p-value.
+    """
+
+    metric: str
+    a: str
+    b: str
+    env: str
+    speeds: tuple[float, ...]
+    pairs: int
+    scenes: int
+    mean_a: float
+    mean_b: float
+    diff: float
+    low: float
+    high: float
+    a_only: int | None = None
+    b_only: int | None = None
+    mcnemar_p: float | None = None
+
+    @property
+    def decided(self) -> bool:
+        return self.low > 0 or self.high < 0
+
+    @property
+    def better(self) -> str | None:
+        """The policy the interval shows better on this metric (None: cannot tell)."""
+        if not self.decided:
+            return None
+        a_higher = self.low > 0
+        return self.a if a_higher == HIGHER_IS_BETTER[self.metric] else self.b
+
+    @property
+    def verdict(self) -> str:
+        return f"{self.better} better" if self.better else "cannot tell"
+
+    def text(self, digits: int = 2) -> str:
+        """e.g. ``+12 points [+3, +21], 94 pairs, McNemar p=0.01`` (success in points)."""
+        scale, unit = (100.0, " points") if self.metric in OUTCOMES else (1.0, "")
+        d = 0 if self.metric in OUTCOMES else digits
+        body = f"{scale * self.diff:+.{d}f}{unit} [{scale * self.low:+.{d}f}, {scale * self.high:+.{d}f}]"
+        extra = f", McNemar p={self.mcnemar_p:.2g}" if self.mcnemar_p is not None else ""
+        return f"{body}, {self.pairs} pairs{extra}"
+
+    def to_dict(self) -> dict:
+        return {**asdict(self), "verdict": self.verdict}
+
+
+def metric_value(rec: TrialRecord, metric: str) -> float:
+    """One trial's value of ``metric`` (success as 0/1; nan when the trial leaves it undefined)."""
+    if metric in OUTCOMES:
+        return float(getattr(rec, OUTCOMES[metric][0]))
+    if metric not in AGGREGATED_METRICS:
+        raise VitflyError(f"paired metric {metric!r}: expected one of {', '.join(METRICS)}")
+    value = rec.metrics.get(AGGREGATED_METRICS[metric][0])
+    return math.nan if value is None else float(value)
+
+
+def pairs(records: Iterable[TrialRecord], a: str, b: str, env: str, metric: str,
+          speeds: Sequence[float] | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Matched trials of ``a`` and ``b``: (scene seeds, speeds, a's values, b's values), one row per pair.
+
+    A pair is one (scene seed, speed) that both flew in ``env``, with the metric defined for both.
+    """
+    wanted = None if speeds is None else {float(s) for s in speeds}
+    values: dict[str, dict[tuple[int, float], float]] = {a: {}, b: {}}
+    for rec in records:
+        if rec.env == env and rec.policy in values and (wanted is None or float(rec.speed) in wanted):
+            values[rec.policy][(rec.scene_seed, float(rec.speed))] = metric_value(rec, metric)
+    keys = sorted(k for k in values[a].keys() & values[b].keys()
+                  if math.isfinite(values[a][k]) and math.isfinite(values[b][k]))
+    va = np.array([values[a][k] for k in keys], dtype=np.float64)
+    vb = np.array([values[b][k] for k in keys], dtype=np.float64)
+    return (np.array([k[0] for k in keys], dtype=np.int64), np.array([k[1] for k in keys]), va, vb)
+
+
+def scene_bootstrap_interval(scene: np.ndarray, diff: np.ndarray, confidence: float = CONFIDENCE,
+                             resamples: int = RESAMPLES, seed: int = 0) -> tuple[float, float]:
+    """Bootstrap interval of mean(diff) resampling whole scenes (all pairs of a drawn scene kept).
+
+    Per scene the sum of its differences and its pair count are resampled together (``paired=True``); the
+    statistic is their ratio, the mean difference per pair. BCa; where BCa is undefined (e.g. every scene
+    alike) the percentile interval, and a constant difference gives the point itself.
+    """
+    groups: dict[int, list[float]] = defaultdict(list)
+    for s, d in zip(scene.tolist(), diff.tolist(), strict=True):
+        groups[s].append(d)
+    sums = np.array([sum(v) for v in groups.values()])
+    counts = np.array([len(v) for v in groups.values()], dtype=np.float64)
+    point = float(sums.sum() / counts.sum())
+    if len(sums) < 2 or np.ptp(sums / counts) == 0:  # every resample gives the same ratio
+        return point, point
+
+    def ratio(s, n, axis=-1):
+        return s.sum(axis=axis) / n.sum(axis=axis)
+
+    for method in ("BCa", "percentile"):
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")  # BCa's degenerate-data warning: the percentile fallback follows
+            ci = bootstrap((sums, counts), ratio, paired=True, vectorized=True, n_resamples=resamples,
+                           confidence_level=confidence, method=method, rng=np.random.default_rng(seed)
+                           ).confidence_interval
+        if math.isfinite(ci.low) and math.isfinite(ci.high):
+            return float(ci.low), float(ci.high)
+    return point, point
+
+
+def mcnemar_exact(a_only: int, b_only: int) -> float:
+    """McNemar's exact two-sided p-value: discordant pairs as a binomial with p = 1/2 (1.0 with none)."""
+    n = a_only + b_only
+    return 1.0 if n == 0 else float(binomtest(min(a_only, b_only), n, 0.5).pvalue)
+
+
+def paired_difference(records: Iterable[TrialRecord], a: str, b: str, env: str, metric: str = "success",
+                      speeds: Sequence[float] | None = None, confidence: float = CONFIDENCE,
+                      resamples: int = RESAMPLES, seed: int = 0) -> PairedDifference | None:
+    """``a`` minus ``b`` on ``metric`` in ``env`` (over ``speeds``, default all both flew); None without pairs."""
+    if metric not in HIGHER_IS_BETTER:
+        raise VitflyError(f"paired metric {metric!r}: expected one of {', '.join(METRICS)}")
+    scene, speed, va, vb = pairs(records, a, b, env, metric, speeds)
+    if len(va) == 0:
+        return None
+    low, high = scene_bootstrap_interval(scene, va - vb, confidence, resamples, seed)
+    a_only = b_only = p = None
+    if metric in OUTCOMES:
+        a_only, b_only = int(np.sum((va == 1) & (vb == 0))), int(np.sum((va == 0) & (vb == 1)))
+        p = mcnemar_exact(a_only, b_only)
+    return PairedDifference(metric, a, b, env, tuple(sorted(set(speed.tolist()))), len(va), len(set(scene.tolist())),
+                            float(va.mean()), float(vb.mean()), float((va - vb).mean()), low, high,
+                            a_only, b_only, p)
+
+
+PAIRED_CSV_METRICS = ("success", "collisions")
+PAIRED_CSV_COLUMNS = ("env", "metric", "a", "b", "speed", "pairs", "scenes", "mean_a", "mean_b", "diff", "low", "high",
+                      "mcnemar_p", "verdict")
+
+
+def paired_rows(records: Sequence[TrialRecord], metrics: Sequence[str] = PAIRED_CSV_METRICS) -> list[dict]:
+    """Every pair of policies in every env, on each metric, per speed and over all speeds (``speed`` "all")."""
+    rows = []
+    for env in sorted({r.env for r in records}):
+        in_env = [r for r in records if r.env == env]
+        policies = sorted({r.policy for r in in_env})
+        speeds = sorted({float(r.speed) for r in in_env})
+        for metric in metrics:
+            for a, b in itertools.combinations(policies, 2):
+                for sp in [[s] for s in speeds] + ([None] if len(speeds) > 1 else []):
+                    d = paired_difference(in_env, a, b, env, metric, sp)
+                    if d is not None:
+                        row = {k: v for k, v in d.to_dict().items() if k in PAIRED_CSV_COLUMNS}
+                        rows.append({**row, "speed": "all" if sp is None else f"{sp[0]:g}"})
+    return rows
+
+
+def paired_csv(rows: Sequence[dict]) -> str:
+    """``paired.csv`` text: one row per (env, metric, a, b, speed); a - b with its 95 % paired interval."""
+    lines = [",".join(PAIRED_CSV_COLUMNS)]
+    for r in rows:
+        lines.append(",".join("" if r.get(c) is None else (f"{r[c]:.6g}" if isinstance(r[c], float) else str(r[c]))
+                              for c in PAIRED_CSV_COLUMNS))
+    return "\n".join(lines) + "\n"

@@ -1,0 +1,224 @@
+"""The paper's findings decided on pairs: each claim as differences between two policies flown on the same
+scenes, each difference with its paired 95 % interval (``vitfly.eval.paired``), and a verdict that rests on
+those intervals.
+
+A claim "A is better than B" is *for* when the interval of A - B lies wholly on A's better side, *against*
+when it lies wholly on B's, else undecided. A finding with several such claims is:
+
+- ``reproduced``: every claim decided for it;
+- ``not``: at least one decided against it;
+- ``partly``: some decided for, none against, the rest undecided;
+- ``cannot tell``: none decided (the study cannot tell the policies apart at its trial counts);
+- ``n/a``: the policies or speeds were not flown.
+
+Two findings are claims of absence or of one special contrast and say their own rule (``beats_expert_above_5``
+and ``resnet_vs_convnet``). The two findings that compare against the paper's own numbers or a repeated single
+scene (trees success at 7 m/s, the most direct path) are not pairs of policies and stay in the unpaired table.
+
+Inputs: trial records of each sweep (``spheres``, ``trees``, ``window``, ``ablation``) with the labels of
+``vitfly.eval.findings``.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+
+from vitfly.eval.findings import LEARNED, NOSTATE_SUFFIX, VIT_MODELS, label
+from vitfly.eval.paired import PairedDifference, paired_difference
+from vitfly.eval.records import TrialRecord
+
+NOT_FLOWN = "the policies were not flown on shared scenes"
+PAIRED_VERDICTS = ("reproduced", "partly", "not", "cannot tell", "n/a")
+METRIC_WORDS = {"success": "success", "success_strict": "strict success", "collisions": "collisions per trial",
+                "time_in_collision": "time in collision (s)", "energy_cost": "energy cost (1/s²)",
+                "cmd_acc": "commanded acceleration (1/s²)"}
+
+
+@dataclass
+class PairedFinding:
+    key: str
+    claim: str
+    metric: str
+    rule: str
+    verdict: str
+    comparisons: list[PairedDifference] = field(default_factory=list)  # each: a claimed better than b
+    why: str = ""
+
+    def to_dict(self) -> dict:
+        return {"key": self.key, "claim": self.claim, "metric": self.metric, "rule": self.rule,
+                "verdict": self.verdict, "why": self.why, "comparisons": [c.to_dict() for c in self.comparisons]}
+
+
+def _speeds_of(records: Sequence[TrialRecord], policy: str) -> list[float]:
+    return sorted({float(r.speed) for r in records if r.policy == policy})
+
+
+def _learned(records: Sequence[TrialRecord]) -> list[str]:
+    present = {r.policy for r in records}
+    return [m for m in LEARNED if m in present]
+
+
+def _decide(diffs: list[PairedDifference]) -> tuple[str, str]:
+    """(verdict, why) of claims that each diff's ``a`` is the better, by the module's rule."""
+    won = sum(d.better == d.a for d in diffs)
+    lost = sum(d.better == d.b for d in diffs)
+    verdict = "not" if lost else ("reproduced" if won == len(diffs) else "partly" if won else "cannot tell")
+    return verdict, f"{won} of {len(diffs)} claims decided for, {lost} against"
+
+
+def _rule(scope: str) -> str:
+    return (f"{scope}, paired over scenes: each claim 'A better than B' decided when the 95 % interval of A - B "
+            "excludes 0; all for reproduced, any against not, some for partly, none decided cannot tell")
+
+
+def _claims(key: str, claim: str, metric: str, records: Sequence[TrialRecord], pairs: list[tuple[str, str]],
+            env: str, speeds: Sequence[float] | None, scope: str) -> PairedFinding:
+    """A finding made of claims "a better than b" for each of ``pairs``, decided by the rule above."""
+    rule = _rule(f"{METRIC_WORDS[metric]} in {env} ({scope})")
+    diffs = [d for a, b in pairs if (d := paired_difference(records, a, b, env, metric, speeds)) is not None]
+    if not diffs:
+        return PairedFinding(key, claim, metric, rule, "n/a", why=NOT_FLOWN)
+    verdict, why = _decide(diffs)
+    return PairedFinding(key, claim, metric, rule, verdict, diffs, why)
+
+
+def lowest_collisions_fast(spheres: Sequence[TrialRecord]) -> PairedFinding:
+    speeds = [s for s in (6.0, 7.0) if s in _speeds_of(spheres, "vit_lstm")]
+    others = [m for m in _learned(spheres) if m != "vit_lstm"]
+    return _claims("lowest_collisions_6_7", "ViT+LSTM has the fewest collisions in Spheres at 6 and 7 m/s",
+                   "collisions", spheres, [("vit_lstm", m) for m in others] if speeds else [], "spheres", speeds,
+                   "6 and 7 m/s pooled")
+
+
+def beats_expert_fast(spheres: Sequence[TrialRecord]) -> PairedFinding:
+    key, claim = "beats_expert_above_5", "ViT+LSTM is the only model with fewer collisions than the expert past 5 m/s"
+    rule = ("collisions per trial in spheres above 5 m/s, paired over scenes: ViT+LSTM decided below the expert "
+            "and no other learned model decided below it reproduced; ViT+LSTM and others too partly; ViT+LSTM "
+            "decided above the expert not; else cannot tell")
+    speeds = [s for s in _speeds_of(spheres, "expert") if s > 5.0]
+    diffs = [d for m in _learned(spheres) if speeds and
+             (d := paired_difference(spheres, m, "expert", "spheres", "collisions", speeds)) is not None]
+    mine = next((d for d in diffs if d.a == "vit_lstm"), None)
+    if mine is None:
+        return PairedFinding(key, claim, "collisions", rule, "n/a", why="ViT+LSTM or the expert not flown above 5 m/s")
+    others = [d.a for d in diffs if d.a != "vit_lstm" and d.better == d.a]
+    if mine.better == "vit_lstm":
+        verdict = "partly" if others else "reproduced"
+    else:
+        verdict = "not" if mine.better == "expert" else "cannot tell"
+    why = (f"ViT+LSTM {mine.verdict.replace('vit_lstm', 'ViT+LSTM')}; other models decided below the expert: "
+           f"{', '.join(label(m) for m in others) or 'none'}")
+    return PairedFinding(key, claim, "collisions", rule, verdict, diffs, why)
+
+
+def less_time_in_collision_than_expert(spheres: Sequence[TrialRecord]) -> PairedFinding:
+    speeds = [s for s in (3.0, 7.0) if s in _speeds_of(spheres, "expert")]
+    return _claims("time_in_collision", "Learned models spend far less time in collision per obstacle than the expert",
+                   "time_in_collision", spheres, [(m, "expert") for m in _learned(spheres)] if speeds else [],
+                   "spheres", speeds, "3 and 7 m/s pooled")
+
+
+def vit_best_in_trees(trees: Sequence[TrialRecord]) -> PairedFinding:
+    learned = _learned(trees)
+    pairs = [(v, m) for v in VIT_MODELS if v in learned for m in learned if m not in VIT_MODELS]
+    return _claims("vit_best_trees", "The ViT models generalise best to the unseen Trees", "collisions", trees,
+                   pairs, "trees", None, "all speeds pooled")
+
+
+def only_vit_through_window(window: Sequence[TrialRecord]) -> PairedFinding:
+    learned = _learned(window)
+    pairs = [(v, m) for v in VIT_MODELS if v in learned for m in learned if m not in VIT_MODELS]
+    return _claims("window_only_vit", "Only the ViT models fly through the window (3 m/s)", "success_strict", window,
+                   pairs, "window", [3.0], "3 m/s")
+
+
+def lowest_energy(spheres: Sequence[TrialRecord]) -> PairedFinding:
+    others = [m for m in _learned(spheres) if m != "vit_lstm"]
+    return _claims("lowest_energy", "ViT+LSTM has the lowest energy cost in Spheres at every speed (3-7 m/s)",
+                   "energy_cost", spheres, [("vit_lstm", m) for m in others], "spheres", None, "all speeds pooled")
+
+
+def recurrence_lowers_acceleration(spheres: Sequence[TrialRecord], trees: Sequence[TrialRecord]) -> PairedFinding:
+    parts = [_claims("recurrence_acc", "", "cmd_acc", recs, [("vit_lstm", "vit")], env, None, "all speeds pooled")
+             for env, recs in (("spheres", spheres), ("trees", trees))]
+    return _merge("recurrence_acc", "Recurrence lowers ViT's commanded acceleration (ViT+LSTM below ViT)", "cmd_acc",
+                  parts, "commanded acceleration in spheres and in trees (all speeds pooled)")
+
+
+def state_helps_vit_lstm(ablation: Sequence[TrialRecord]) -> PairedFinding:
+    parts = [_claims("state_helps_vit_lstm", "", "success", ablation, [("vit_lstm", "vit_lstm" + NOSTATE_SUFFIX)],
+                     env, None, "ablation speeds pooled") for env in ("spheres", "trees")]
+    return _merge("state_helps_vit_lstm", "The state input (speed, attitude) helps ViT+LSTM", "success", parts,
+                  "success in the ablation's spheres and trees (its speeds pooled)")
+
+
+def resnet_no_better(spheres: Sequence[TrialRecord]) -> PairedFinding:
+    key, claim = "resnet_vs_convnet", "ResNet-18 is no better than ConvNet"
+    rule = ("success in spheres (all speeds pooled), paired over scenes: ResNet-18 - ConvNet decided above 0 not; "
+            "decided below 0 or undecided reproduced, with the largest lead the interval allows")
+    d = paired_difference(spheres, "resnet18", "convnet", "spheres", "success")
+    if d is None:
+        return PairedFinding(key, claim, "success", rule, "n/a", why="ResNet-18 and ConvNet not flown on shared scenes")
+    verdict = "not" if d.better == "resnet18" else "reproduced"
+    why = f"ResNet-18 at most {100 * d.high:+.0f} points over ConvNet (95 % upper bound)"
+    return PairedFinding(key, claim, "success", rule, verdict, [d], why)
+
+
+def _merge(key: str, claim: str, metric: str, parts: list[PairedFinding], scope: str) -> PairedFinding:
+    """One finding from the claims of several environments, decided by the same rule over all of them."""
+    diffs = [d for p in parts for d in p.comparisons]
+    if not diffs:
+        return PairedFinding(key, claim, metric, _rule(scope), "n/a", why=NOT_FLOWN)
+    verdict, why = _decide(diffs)
+    return PairedFinding(key, claim, metric, _rule(scope), verdict, diffs, why)
+
+
+def paired_findings(spheres: Sequence[TrialRecord] | None, trees: Sequence[TrialRecord] | None,
+                    window: Sequence[TrialRecord] | None,
+                    ablation: Sequence[TrialRecord] | None) -> list[PairedFinding]:
+    """Every paired finding, in the order of the unpaired table (``vitfly.eval.findings.paper_findings``)."""
+    s, t, w, a = spheres or [], trees or [], window or [], ablation or []
+    return [lowest_collisions_fast(s), beats_expert_fast(s), less_time_in_collision_than_expert(s),
+            vit_best_in_trees(t), only_vit_through_window(w), lowest_energy(s), recurrence_lowers_acceleration(s, t),
+            state_helps_vit_lstm(a), resnet_no_better(s)]
+
+
+def _policy(name: str) -> str:
+    return name if name in ("expert", "straight") else label(name)
+
+
+def paired_findings_markdown(findings: Sequence[PairedFinding]) -> str:
+    """The paired findings table: one line per claim (A - B, interval, pairs), then each verdict's rule."""
+    lines = ["| finding | claim (A better than B) | metric | A - B [95 % interval], pairs | decided | verdict |",
+             "|---|---|---|---|---|---|"]
+    for f in findings:
+        if not f.comparisons:
+            lines.append(f"| {f.claim} | - | {METRIC_WORDS[f.metric]} | - | - | **{f.verdict}** ({f.why}) |")
+        for i, d in enumerate(f.comparisons):
+            head = f.claim if i == 0 else ""
+            verdict = f"**{f.verdict}** ({f.why})" if i == 0 else ""
+            decided = {None: "cannot tell", d.a: "for", d.b: "against"}[d.better]
+            lines.append(f"| {head} | {_policy(d.a)} vs {_policy(d.b)}, {d.env} | {METRIC_WORDS[d.metric]} | "
+                         f"{d.text()} | {decided} | {verdict} |")
+    counts = ", ".join(f"{sum(f.verdict == v for f in findings)} {v}" for v in PAIRED_VERDICTS)
+    rules = [f"- {f.claim}: {f.rule}." for f in findings]
+    return "\n".join([*lines, "", f"Verdicts: {counts}.", "", *rules, ""])
+
+
+def lead_table(records: Sequence[TrialRecord], env: str, leader: str = "vit_lstm",
+               metric: str = "success") -> str:
+    """``leader`` minus every other policy of ``env`` on ``metric``, per speed and pooled, with paired intervals."""
+    policies = [p for p in (*LEARNED, "expert", "straight") if p != leader and any(r.policy == p for r in records)]
+    speeds = _speeds_of(records, leader)
+    if not policies or not speeds:
+        return "(not flown)\n"
+    head = " | ".join(f"{s:g} m/s" for s in speeds)
+    lines = [f"| {_policy(leader)} minus | {head} | all speeds |", "|---|" + "---:|" * (len(speeds) + 1)]
+    for p in policies:
+        cells = []
+        for sp in [[s] for s in speeds] + [None]:
+            d = paired_difference(records, leader, p, env, metric, sp)
+            cells.append("-" if d is None else f"{d.text()}{' *' if d.decided else ''}")
+        lines.append(f"| {_policy(p)} | " + " | ".join(cells) + " |")
+    return "\n".join(lines) + "\n"
