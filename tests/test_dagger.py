@@ -283,9 +283,10 @@ def test_datasets_tag_rounds_and_match_frames(tiny_run):
     for r in (1, 2):  # the baseline trained exactly as many optimiser steps as DAgger, and flies what it ended with
         steps = [json.loads((out / f"manifests/r{r}.{k}.json").read_text())["result"]["steps"]
                  for k in ("train", "bc-train")]
-        final = [torch.load(out / f"train/{k}-r{r}/checkpoints/final.ckpt", weights_only=True)["global_step"]
+        final = [torch.load(out / f"train/{k}-r{r}/checkpoints/last.ckpt", weights_only=True)["global_step"]
                  for k in ("dagger", "bc")]
         assert steps[0] == steps[1] == final[0] == final[1] > 0
+    assert not list(out.glob("train/*/checkpoints/final.ckpt"))  # last.ckpt only, as every other training
 
 
 def test_labels_are_the_experts_commands_at_the_logged_states(tiny_run):
@@ -314,7 +315,7 @@ def test_resume_mid_round_keeps_committed_flights(tiny_run):
 
 def test_rerun_recomputes_nothing_and_changed_settings_are_refused(tiny_run, capsys):
     out, cfg = tiny_run.out, tiny_run.cfg
-    watched = [out / "data/dagger.h5", out / "data/bc.h5", *sorted(out.glob("train/*/checkpoints/final.ckpt")),
+    watched = [out / "data/dagger.h5", out / "data/bc.h5", *sorted(out.glob("train/*/checkpoints/last.ckpt")),
                out / "eval/trials.jsonl"]
     before = {p: (file_hash(p), p.stat().st_mtime_ns) for p in watched}
     capsys.readouterr()
@@ -335,7 +336,7 @@ def test_rerun_recomputes_nothing_and_changed_settings_are_refused(tiny_run, cap
 def test_changed_training_settings_retrain_when_no_flights_depend_on_them(tmp_path, capsys):
     out = tmp_path / "run"
     run_dagger(tiny(out), stop_after="r0.train", progress=False)
-    ckpt = out / "train/r0/checkpoints/final.ckpt"
+    ckpt = out / "train/r0/checkpoints/last.ckpt"
     steps = torch.load(ckpt, weights_only=True)["global_step"]
     capsys.readouterr()
     run_dagger(tiny(out, train={"epochs": 2}), stop_after="r0.train", progress=False)
@@ -348,7 +349,7 @@ def test_init_weights_start_a_fine_tune_from_a_checkpoint(tiny_run, tmp_path):
     from vitfly.training import train_policy
     from vitfly.zoo import load_network
 
-    init = tiny_run.out / "train/r0/checkpoints/final.ckpt"
+    init = tiny_run.out / "train/r0/checkpoints/last.ckpt"
     kwargs = dict(max_epochs=-1, batch_size=2, progress_bar=False,
                   policy_kwargs={"lr": 0.0, "warmup_epochs": 0, "cpu_threads": 1},
                   trainer_kwargs={"max_steps": 1, "limit_val_batches": 0, "enable_model_summary": False})

@@ -17,7 +17,7 @@ trajectories (round 0's), only the data differ. Every round's students fly the h
 Layout of ``OUT``::
 
     data/dagger.h5, data/bc.h5       the aggregated datasets (appends are atomic per trajectory)
-    train/r0, train/dagger-rI, train/bc-rI   runs; checkpoints/final.ckpt: the weights each ended with
+    train/r0, train/dagger-rI, train/bc-rI   runs; checkpoints/last.ckpt: the weights each ended with
     eval/trials.jsonl                every round's students and the baselines on the same scenes
     paths/trials.jsonl               repeats of one evaluation scene by the last round's students
     manifests/<stage>.json           what each stage was run with (its fingerprint) and what it produced
@@ -49,13 +49,12 @@ import numpy as np
 from vitfly.atomic import write_text
 from vitfly.errors import VitflyError
 from vitfly.eval.fingerprint import digest
-from vitfly.workflows.dagger_config import DaggerConfig, base_collect, eval_stage
+from vitfly.workflows.dagger_config import DaggerConfig, base_collect, eval_stage, paths_plan, student_label
 from vitfly.zoo.pretrained import is_pretrained_spec
 
 DAGGER_DATA = "data/dagger.h5"
 BC_DATA = "data/bc.h5"
 DAGGER_FIELDS = ("velocity_cmd_executed", "dagger_round", "dagger_beta")
-FINAL_NAME = "final.ckpt"  # under train/<run>/checkpoints
 
 
 @dataclass(frozen=True)
@@ -72,37 +71,15 @@ class Stage:
         return digest(self.key)
 
 
-def student_label(round_index: int, baseline: bool) -> str:
-    """Evaluation label of a round's student; round 0's is shared by both methods (``bc-r0``)."""
-    return f"bc-r{round_index}" if baseline or round_index == 0 else f"dagger-r{round_index}"
-
-
 def train_dir(cfg: DaggerConfig, round_index: int, baseline: bool = False) -> Path:
     name = "r0" if round_index == 0 else f"{'bc' if baseline else 'dagger'}-r{round_index}"
     return cfg.out_dir / "train" / name
 
 
 def final_checkpoint(cfg: DaggerConfig, round_index: int, baseline: bool = False) -> Path:
-    """The weights a round's training ended with (the next round starts from them, evaluation flies them)."""
-    return train_dir(cfg, round_index, baseline) / "checkpoints" / FINAL_NAME
-
-
-def save_final_callback(path: Path):
-    """A Lightning callback that writes the weights the training ended with to ``path`` (atomically).
-
-    ``last.ckpt`` now holds the same weights (``vitfly.training_checkpoints.LastCheckpoint``); ``final.ckpt``
-    stays the name rounds, manifests and reports refer to, written once when the training ends.
-    """
-    from lightning.pytorch.callbacks import Callback
-
-    from vitfly.atomic import atomic_path
-
-    class SaveFinal(Callback):
-        def on_train_end(self, trainer, pl_module) -> None:
-            with atomic_path(path) as tmp:
-                trainer.save_checkpoint(tmp)
-
-    return SaveFinal()
+    """The weights a round's training ended with (the next round starts from them, evaluation flies them): its
+    ``last.ckpt``, which every training rewrites at the end of each epoch (``vitfly.training_checkpoints``)."""
+    return train_dir(cfg, round_index, baseline) / "checkpoints" / "last.ckpt"
 
 
 def _file_hash(path: str | None) -> str | None:
@@ -492,7 +469,7 @@ def stage_train(cfg: DaggerConfig, stage: Stage, baseline: bool, progress: bool 
     train_policy(data, settings["model"], out, use_state=settings["use_state"], max_epochs=max_epochs,
                  batch_size=settings["batch_size"], val_fraction=settings["val_fraction"], seed=settings["seed"],
                  policy_kwargs=policy_kwargs, data_kwargs=data_kwargs, trainer_kwargs=trainer_kwargs,
-                 progress_bar=progress, init_weights=init, callbacks=[save_final_callback(ckpt)])
+                 progress_bar=progress, init_weights=init)
     finish_wandb()
     if not ckpt.exists():
         raise VitflyError(f"{out}: training ended without writing {ckpt}")
@@ -552,14 +529,6 @@ def stage_evaluate(cfg: DaggerConfig, stage: Stage, progress: bool = True) -> di
         replaced = f", {outcome.replaced} stale trials replaced" if outcome.replaced else ""
         print(f"[{stage.name}] {label}: {outcome.flown} trials flown, {outcome.skipped} done before{replaced}")
     return {"labels": [label for _, label in policies], "flown": flown, "training_scenes_checked": checked}
-
-
-def paths_plan(cfg: DaggerConfig):
-    from vitfly.eval.repeats import RepeatPlan
-
-    p, e = cfg.paths, cfg.evaluate
-    return RepeatPlan(env=e.env[0], preset=e.preset, speed=p.speed, repeats=max(p.repeats, 1), jitter_m=p.jitter_m,
-                      seed=e.seed, scene_trial=p.scene_trial, timeout_s=e.timeout_s)
 
 
 def stage_paths(cfg: DaggerConfig, stage: Stage) -> dict:

@@ -270,3 +270,16 @@ def eval_stage(cfg: DaggerConfig):
     return EvalStage(env=list(e.env), preset=e.preset, speeds=list(e.speeds), trials=e.trials, seed=e.seed,
                      num_envs=e.num_envs, workers=e.workers, threads=e.threads, backend=e.backend,
                      timeout_s=e.timeout_s, device=e.device, physics=base_collect(cfg).physics)
+
+
+def student_label(round_index: int, baseline: bool) -> str:
+    """Evaluation label of a round's student; round 0's is shared by both methods (``bc-r0``)."""
+    return f"bc-r{round_index}" if baseline or round_index == 0 else f"dagger-r{round_index}"
+
+
+def paths_plan(cfg: DaggerConfig):
+    from vitfly.eval.repeats import RepeatPlan
+
+    p, e = cfg.paths, cfg.evaluate
+    return RepeatPlan(env=e.env[0], preset=e.preset, speed=p.speed, repeats=max(p.repeats, 1), jitter_m=p.jitter_m,
+                      seed=e.seed, scene_trial=p.scene_trial, timeout_s=e.timeout_s)

@@ -28,8 +28,7 @@ from matplotlib.figure import Figure
 from vitfly.atomic import write_text
 from vitfly.eval import records
 from vitfly.eval.findings import wilson
-from vitfly.workflows.dagger import paths_plan, student_label
-from vitfly.workflows.dagger_config import DaggerConfig
+from vitfly.workflows.dagger_config import DaggerConfig, paths_plan, student_label
 
 METHODS = {"dagger": "DAgger", "bc": "BC (equal frames)"}
 CSV_COLUMNS = ("round", "beta", "labelled_frames", "method", "policy", "env", "speed", "trials", "successes",
