@@ -1,26 +1,39 @@
-"""Train runs of a ``vitfly reproduce`` preset on one GPU machine inside one time-boxed command, then carry them home.
+"""Train runs of a ``vitfly reproduce`` preset on a GPU machine lent in time-boxed slots, and carry them home.
 
-There (the device machine, 16 cores and one GPU; its 10-minute command limit):
+There (the device machine, 16 cores and one GPU; at most 10 minutes a command; at most 64 MiB carried to it,
+8 files of 16 MiB brought back):
 
-    python3 scripts/gpu_reproduce.py train --preset laptop --out DIR --expect-data-hash HASH \\
-        --runs vit_lstm-state resnet18-state convnet-nostate ...
+    python3 scripts/gpu_reproduce.py train --preset paper --out DIR --expect-data-hash HASH \\
+        --runs convnet-state vit_lstm-state ... [--resume-from runs/reproduce-paper/train/lstmnet-state ...]
 
 1. the preset's dataset, collected there with many workers (the collector is deterministic: the file is
    byte-identical to one collected anywhere else with the same settings; ``--expect-data-hash`` refuses to
-   train on anything else, so the runs belong to the dataset the rest of the preset used);
+   train on anything else, and so does every resumed run whose ``unfinished.json`` names another hash);
 2. every run as its own process, all at once (small TBPTT batches leave a GPU mostly idle), through the same
-   code as ``vitfly reproduce``'s train stage (recipe, preset overrides, done.json), stopped at the deadline;
-3. each finished run packed for the trip back (the device tool returns 8 files of 16 MiB): metrics, split,
-   cost, done.json and the best checkpoint without optimiser state, its network weights in fp16 (as the
-   shipped weights). A run stopped at the deadline is named in DIR/gpu_reproduce.json and not returned.
+   code as ``vitfly reproduce``'s train stage (recipe, preset overrides, done.json); a run of
+   ``--resume-from`` (a run folder that ``unpack`` left unfinished, carried to the machine) goes on from its
+   ``last.ckpt``. Every epoch ends in ``last.ckpt``; a run does not start an epoch that would end after the
+   deadline (``--stop-after-epochs`` stops it after that many), and one still running then is killed and
+   goes on from its last epoch next time. A run with a done.json is never trained again;
+3. the runs packed for the trip back as ``runs.tar.NNN`` (at most ``--return-mib``, finished runs first):
+   a finished run as metrics, split, cost, done.json and its best checkpoint without optimiser state (network
+   weights in fp16, as the shipped weights); an unfinished one as its resume state (``scripts/gpu_slots.py``:
+   ``last.ckpt`` with fp32 weights, Adam moments in fp32 or ``--moments bf16``, loop and random-generator
+   state; the best checkpoint so far in fp16; ``unfinished.json``: epochs done, data hash, the slots so far).
+   DIR/gpu_reproduce.json says what happened to each run; the command exits 0 when every run came back
+   (finished, or unfinished with at least one more epoch) or was finished before.
 
 Here (the machine that goes on with the preset):
 
-    python3 scripts/gpu_reproduce.py unpack --preset laptop DIR
+    python3 scripts/gpu_reproduce.py unpack --preset paper DIR
+    python3 scripts/gpu_reproduce.py status --preset paper
 
-puts the runs under the preset's ``train/`` with done.json naming the local checkpoint (a run that already
-has a done.json here is left alone); ``vitfly reproduce --preset laptop`` then skips them as done and goes on.
-A returned run has no ``last.ckpt``: a later change of its settings trains it again from the start.
+``unpack`` refuses runs trained on other data than the local dataset, then puts each under the preset's
+``train/``: a finished one with done.json naming the local checkpoint (``vitfly reproduce`` skips it as done),
+an unfinished one with its ``unfinished.json`` and never a done.json (``vitfly reproduce`` would resume it on
+this machine). A run that has a done.json here is left alone. ``status`` lists every run of the preset (done,
+unfinished k/N epochs, not started) and what the next slot carries: the unfinished run folders, within 64 MiB.
+A finished run returns without ``last.ckpt``: a later change of its settings trains it again from the start.
 """
 
 from __future__ import annotations
@@ -31,7 +44,6 @@ import os
 import shutil
 import subprocess
 import sys
-import tarfile
 import time
 from pathlib import Path
 
@@ -39,6 +51,8 @@ ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
 DROPPED_KEYS = ("optimizer_states", "lr_schedulers", "callbacks", "loops")  # resume state, not the network
+RUN_FILES = ("metrics.csv", "split.json", "cost.json", "hparams.yaml")  # what travels besides checkpoints
+SLOT_ENDED_RC = 3  # train-one's exit status when the slot ended before the run did
 
 
 def log(msg: str) -> None:
@@ -58,8 +72,22 @@ def parse_label(label: str) -> tuple[str, bool]:
     return model, kind == "state"
 
 
+def run_dir(cfg, label: str) -> Path:
+    return cfg.train_dir(*parse_label(label))
+
+
+def device_name() -> str:
+    import torch
+
+    return torch.cuda.get_device_name(0) if torch.cuda.is_available() else "cpu"
+
+
+# -- there: one run (a child process of `train`) ----------------------------------------------------------------
+
+
 def train_one(args: argparse.Namespace) -> int:
-    """One run, exactly as ``vitfly reproduce``'s train stage trains it (child process of ``train``)."""
+    """One run, exactly as ``vitfly reproduce``'s train stage trains it, ended early when the slot ends."""
+    from scripts.gpu_slots import SlotEnded, SlotStop
     from vitfly.workflows.pipeline import stage_train
     from vitfly.workflows.reproduce import _add_cost
     from vitfly.workflows.reproduce_config import train_callbacks, train_stage
@@ -67,11 +95,20 @@ def train_one(args: argparse.Namespace) -> int:
     cfg = load_cfg(args)
     model, use_state = parse_label(args.train_one)
     stage, callbacks = train_callbacks(train_stage(cfg, model, use_state), cfg, "reproduce config")
+    slot = SlotStop(args.stop_at, args.stop_after_epochs, args.epoch_s)
     train_dir = cfg.train_dir(model, use_state)
     t0 = time.perf_counter()
-    stage_train(stage, cfg.data, train_dir, args.threads, progress=False, callbacks=callbacks)
+    try:
+        stage_train(stage, cfg.data, train_dir, args.threads, progress=False, callbacks=[*callbacks, slot])
+    except SlotEnded as stop:  # stage_train writes no done.json: the run is unfinished
+        print(f"[train] {args.train_one}: slot ended after {slot.trained} epochs here: {stop}", flush=True)
+        _add_cost(train_dir, time.perf_counter() - t0)
+        return SLOT_ENDED_RC
     _add_cost(train_dir, time.perf_counter() - t0)
     return 0
+
+
+# -- there: packing for the trip back ---------------------------------------------------------------------------
 
 
 def slim_checkpoint(src: Path, dst: Path) -> dict:
@@ -90,136 +127,436 @@ def slim_checkpoint(src: Path, dst: Path) -> dict:
     return {"epoch": int(obj.get("epoch", -1)), "global_step": int(obj.get("global_step", -1))}
 
 
-def pack(cfg, labels: list[str], out: Path, work: Path) -> list[str]:
-    """The finished runs, slimmed, as ``out/runs.tar.NNN`` pieces; returns the labels packed."""
+def copy_run_files(d: Path, dst: Path, epochs: int | None) -> None:
+    """Metrics (earlier slots' rows joined, rows of an unfinished epoch dropped), split, cost, hparams."""
+    from scripts.gpu_slots import EARLIER_METRICS, merge_metrics
+
+    merge_metrics([d / EARLIER_METRICS, d / "metrics.csv"], dst / "metrics.csv", epochs)
+    for name in RUN_FILES[1:]:
+        if (d / name).exists():
+            shutil.copy(d / name, dst / name)
+
+
+def stage_finished(d: Path, dst: Path, slots: list[dict], data_hash: str) -> dict:
+    """A finished run as it travels: slim best checkpoint and done.json naming it (made absolute by unpack)."""
     import torch
 
+    (dst / "checkpoints").mkdir(parents=True)
+    done = json.loads((d / "done.json").read_text())
+    best = slim_checkpoint(Path(done["checkpoint"]), dst / "checkpoints" / "best.ckpt")
+    last = torch.load(d / "checkpoints" / "last.ckpt", map_location="cpu", weights_only=True, mmap=True)
+    done["checkpoint"] = "checkpoints/best.ckpt"
+    done["trained_on"] = {"device": " + ".join(dict.fromkeys(s["device"] for s in slots)), "weights": "fp16",
+                          "best_epoch": best["epoch"] + 1, "epochs": int(last.get("epoch", -1)) + 1,
+                          "steps": int(last.get("global_step", -1)), "dataset_hash": data_hash, "slots": slots}
+    (dst / "done.json").write_text(json.dumps(done) + "\n")
+    copy_run_files(d, dst, None)
+    return done["trained_on"]
+
+
+def stage_unfinished(d: Path, dst: Path, marker: dict, moments: str) -> None:
+    """An unfinished run as it travels: its resume state (``scripts/gpu_slots.py``) and ``unfinished.json``."""
+    import torch
+
+    from scripts.gpu_slots import MARKER, compact_moments, save_atomic
+
+    (dst / "checkpoints").mkdir(parents=True)
+    last = torch.load(d / "checkpoints" / "last.ckpt", map_location="cpu", weights_only=True)
+    save_atomic(compact_moments(last, moments), dst / "checkpoints" / "last.ckpt")
+    if (d / "checkpoints" / "best.ckpt").exists():
+        best = slim_checkpoint(d / "checkpoints" / "best.ckpt", dst / "checkpoints" / "best.ckpt")
+        marker["best_epoch"] = best["epoch"] + 1
+    (dst / MARKER).write_text(json.dumps(marker) + "\n")
+    copy_run_files(d, dst, marker["epochs"])
+
+
+def pack(staged: list[tuple[str, Path]], out: Path, work: Path, budget: int) -> tuple[list[str], list[str]]:
+    """The staged run folders, in order, into ``out/runs.tar.NNN`` while they fit ``budget`` bytes; returns the
+    labels packed and those left out."""
+    import tarfile
+
+    from scripts.gpu_slots import tree_bytes
     from scripts.gpu_study import write_pieces
 
-    stage_dir = work / "pack"
-    shutil.rmtree(stage_dir, ignore_errors=True)
-    packed = []
-    for label in labels:
-        model, use_state = parse_label(label)
-        d = cfg.train_dir(model, use_state)
-        marker = d / "done.json"
-        if not marker.exists():
-            continue
-        done = json.loads(marker.read_text())
-        dst = stage_dir / label
-        (dst / "checkpoints").mkdir(parents=True)
-        best = slim_checkpoint(Path(done["checkpoint"]), dst / "checkpoints" / "best.ckpt")
-        last = torch.load(d / "checkpoints" / "last.ckpt", map_location="cpu", weights_only=True)
-        done["checkpoint"] = "checkpoints/best.ckpt"  # made absolute by unpack
-        done["trained_on"] = {"device": torch.cuda.get_device_name(0) if torch.cuda.is_available() else "cpu",
-                              "weights": "fp16", "best_epoch": best["epoch"] + 1,
-                              "epochs": int(last.get("epoch", -1)) + 1, "steps": int(last.get("global_step", -1))}
-        (dst / "done.json").write_text(json.dumps(done) + "\n")
-        for name in ("metrics.csv", "split.json", "cost.json", "hparams.yaml"):
-            if (d / name).exists():
-                shutil.copy(d / name, dst / name)
-        packed.append(label)
+    packed, left, total = [], [], 0
     tar_path = work / "runs.tar"
     with tarfile.open(tar_path, "w") as tar:
-        for label in packed:
-            tar.add(stage_dir / label, arcname=label)
-    write_pieces(tar_path, out)
-    return packed
+        for label, folder in staged:
+            size = tree_bytes(folder) + 4096  # tar headers and padding, generously
+            if total + size > budget:
+                left.append(label)
+                continue
+            tar.add(folder, arcname=label)
+            packed.append(label)
+            total += size
+    if packed:
+        write_pieces(tar_path, out)
+    return packed, left
 
 
-def train(args: argparse.Namespace) -> int:
+# -- there: the slot --------------------------------------------------------------------------------------------
+
+
+def resume_sources(paths: list[str], preset: str) -> dict[str, tuple[Path, dict]]:
+    """label -> (run folder, its unfinished.json) for each ``--resume-from`` folder: a run folder, or a folder
+    of run folders (those with a done.json are finished: they are not resumed)."""
+    from scripts.gpu_slots import MARKER, read_marker
+
+    found: dict[str, tuple[Path, dict]] = {}
+    for p in map(Path, paths):
+        if not p.is_dir():
+            raise SystemExit(f"--resume-from {p}: no such folder")
+        folders = [p] if (p / MARKER).exists() or (p / "done.json").exists() else sorted(q for q in p.iterdir()
+                                                                                       if (q / MARKER).exists())
+        if not folders:
+            raise SystemExit(f"--resume-from {p}: no {MARKER}; expected a run folder that unpack left unfinished")
+        for folder in folders:
+            if (folder / "done.json").exists():
+                log(f"{folder}: finished (done.json); not resumed")
+                continue
+            marker = read_marker(folder)
+            if marker["preset"] != preset:
+                raise SystemExit(f"{folder / MARKER}: preset {marker['preset']!r}, not --preset {preset!r}")
+            parse_label(marker["label"])
+            found[marker["label"]] = (folder, marker)
+    return found
+
+
+def place_resumed(cfg, resumed: dict[str, tuple[Path, dict]]) -> None:
+    """Each resumed run into the preset's train dir here, its callbacks pointed there, its metrics set aside."""
+    from scripts.gpu_slots import copy_run, epochs_done, relocate_file, set_metrics_aside
+
+    for label, (src, marker) in resumed.items():
+        dst = run_dir(cfg, label)
+        copy_run(src, dst)
+        relocate_file(dst / "checkpoints" / "last.ckpt")
+        set_metrics_aside(dst)
+        marker["epochs"] = epochs_done(dst)  # the checkpoint's, should a resume at home have gone on since
+
+
+def collect_data(cfg, args, report: dict) -> str | None:
+    """The preset's dataset, fingerprinted; None (and the report says why) if its hash is not the expected one."""
     from vitfly.datamodules.provenance import dataset_fingerprint
     from vitfly.workflows.pipeline import stage_collect
-
-    start = time.monotonic()
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
-    work = Path(args.work)
-    work.mkdir(parents=True, exist_ok=True)
-    cfg = load_cfg(args)
-    labels = list(args.runs)
-    for label in labels:
-        parse_label(label)
-    report: dict = {"preset": args.preset, "runs": {}}
 
     t0 = time.monotonic()
     stage_collect(cfg.collect_config, {**cfg.collect, "workers": args.collect_workers}, cfg.data, progress=False)
     report["data"] = {**dataset_fingerprint(cfg.data), "collect_s": round(time.monotonic() - t0, 1)}
     log(f"data {cfg.data}: {report['data']}")
-    if args.expect_data_hash and report["data"]["dataset_hash"] != args.expect_data_hash:
-        report["error"] = f"dataset_hash {report['data']['dataset_hash']} != expected {args.expect_data_hash}"
-        (out / "gpu_reproduce.json").write_text(json.dumps(report, indent=1) + "\n")
-        log(report["error"] + ": nothing trained")
-        return 1
+    data_hash = report["data"]["dataset_hash"]
+    if args.expect_data_hash and data_hash != args.expect_data_hash:
+        report["error"] = f"dataset_hash {data_hash} != expected {args.expect_data_hash}"
+        return None
+    return data_hash
 
+
+def wrong_data(resumed: dict[str, tuple[Path, dict]], data_hash: str) -> str | None:
+    for label, (folder, marker) in resumed.items():
+        if marker["dataset_hash"] != data_hash:
+            return (f"{folder}: {label} was trained on dataset_hash {marker['dataset_hash']}, "
+                    f"not this slot's {data_hash}; not resumed")
+    return None
+
+
+def start_runs(args, labels: list[str], resumed: dict, stop_at: float, work: Path) -> dict:
     procs = {}
     for label in labels:
         cmd = [sys.executable, __file__, "train-one", "--config", args.config, "--preset", args.preset,
-               "--threads", str(args.threads), label]
+               "--threads", str(args.threads), "--stop-at", str(stop_at), label]
         cmd += ["--run-dir", args.run_dir] if args.run_dir else []
         cmd += ["--data", args.data] if args.data else []
-        logfile = open(work / f"{label}.log", "w")
-        procs[label] = subprocess.Popen(cmd, stdout=logfile, stderr=subprocess.STDOUT, cwd=ROOT,
-                                        start_new_session=True)
-    train_deadline = start + args.deadline_s - args.reserve_s
-    while any(p.poll() is None for p in procs.values()) and time.monotonic() < train_deadline:
-        time.sleep(2)
-    for label, p in procs.items():
-        if p.poll() is None:
+        cmd += ["--stop-after-epochs", str(args.stop_after_epochs)] if args.stop_after_epochs is not None else []
+        hint = resumed[label][1].get("epoch_s") if label in resumed else None
+        cmd += ["--epoch-s", str(hint)] if hint else []
+        with open(work / f"{label}.log", "w") as logfile:  # the child writes through its own copy
+            procs[label] = (subprocess.Popen(cmd, stdout=logfile, stderr=subprocess.STDOUT, cwd=ROOT,
+                                             start_new_session=True), time.monotonic())
+    return procs
+
+
+def wait_runs(procs: dict, deadline: float) -> dict[str, tuple[int | None, float]]:
+    """label -> (exit status, or None if killed at ``deadline``; wall seconds)."""
+    ended: dict[str, tuple[int | None, float]] = {}
+    while len(ended) < len(procs):
+        for label, (p, t0) in procs.items():
+            if label not in ended and p.poll() is not None:
+                ended[label] = (p.returncode, time.monotonic() - t0)
+        if time.monotonic() >= deadline:
+            break
+        time.sleep(1)
+    for label, (p, t0) in procs.items():
+        if label not in ended:  # mid-epoch: its last.ckpt (written atomically) holds the epoch before
             os.killpg(p.pid, 9)
             p.wait()
-            report["runs"][label] = {"rc": None, "note": "stopped at the deadline, not returned"}
+            ended[label] = (None, time.monotonic() - t0)
+    return ended
+
+
+def stage_run(cfg, label: str, ended: tuple, resumed: dict, data_hash: str, args,
+              work: Path) -> tuple[dict, Path | None]:
+    """What one run did this slot (the report's entry), and its folder staged for the trip back (or None)."""
+    from scripts.gpu_slots import epochs_done
+    from vitfly.workflows.reproduce_config import train_stage
+
+    d = run_dir(cfg, label)
+    rc, wall_s = ended
+    marker = resumed[label][1] if label in resumed else {"label": label, "preset": args.preset, "slots": []}
+    before, after = (marker.get("epochs", 0), epochs_done(d))
+    slot = {"device": device_name(), "epochs": [before, after], "wall_s": round(wall_s, 1)}
+    entry = {"rc": rc, "epochs": [before, after], "wall_s": slot["wall_s"]}
+    dst = work / "stage" / label
+    if (d / "done.json").exists():
+        entry["state"] = "finished"
+        stage_finished(d, dst, [*marker["slots"], slot], data_hash)
+        return entry, dst
+    if after <= before:
+        entry.update(state="no progress", note="no epoch finished this slot; nothing returned")
+        return entry, None
+    epoch_s = wall_s / (after - before)  # startup included: errs long, so the next slot stops in time
+    marker = {**marker, "epochs": after, "max_epochs": train_stage(cfg, *parse_label(label)).max_epochs,
+              "dataset_hash": data_hash, "moments": args.moments, "epoch_s": round(epoch_s, 1),
+              "slots": [*marker["slots"], slot]}
+    entry.update(state="unfinished", max_epochs=marker["max_epochs"])
+    stage_unfinished(d, dst, marker, args.moments)
+    return entry, dst
+
+
+def runs_to_train(cfg, labels: list[str], report: dict) -> list[str]:
+    """The labels without a done.json here (a finished run is never trained again)."""
+    todo = []
+    for label in labels:
+        if (run_dir(cfg, label) / "done.json").exists():
+            report["runs"][label] = {"state": "done before", "note": "finished (done.json): not retrained"}
+            log(f"{label}: finished before (done.json); not retrained, not returned")
         else:
-            report["runs"][label] = {"rc": p.returncode}
-        log(f"{label}: {report['runs'][label]}; log tail: "
+            todo.append(label)
+    return todo
+
+
+def return_runs(cfg, args, todo: list[str], ended: dict, resumed: dict, data_hash: str, report: dict,
+                start: float) -> int:
+    """Stage what each run did, pack what fits for the trip back, write the report; 0 if every run came back."""
+    out, work = Path(args.out), Path(args.work)
+    staged = []
+    for label in todo:
+        entry, folder = stage_run(cfg, label, ended[label], resumed, data_hash, args, work)
+        report["runs"][label] = entry
+        staged += [(label, folder)] if folder else []
+        log(f"{label}: {entry}; log tail: "
             + " | ".join((work / f"{label}.log").read_text().strip().splitlines()[-2:]))
-    packed = pack(cfg, labels, out, work)
+    staged.sort(key=lambda s: report["runs"][s[0]]["state"] != "finished")  # finished runs first
+    packed, left = pack(staged, out, work, int(args.return_mib * 2**20))
     for label in packed:
         report["runs"][label]["packed"] = True
+    for label in left:
+        report["runs"][label]["note"] = f"not returned: the trip back holds {args.return_mib} MiB"
     report["elapsed_s"] = round(time.monotonic() - start, 1)
     (out / "gpu_reproduce.json").write_text(json.dumps(report, indent=1) + "\n")
-    log(f"packed {len(packed)}/{len(labels)} runs in {report['elapsed_s']} s")
-    return 0 if len(packed) == len(labels) else 1
+    log(f"packed {len(packed)}/{len(todo)} runs in {report['elapsed_s']} s")
+    return 0 if len(packed) == len(todo) else 1
 
 
-def unpack(args: argparse.Namespace) -> int:
+def train(args: argparse.Namespace) -> int:
+    start = time.monotonic()
+    out, work = Path(args.out), Path(args.work)
+    out.mkdir(parents=True, exist_ok=True)
+    for stale in [*out.glob("runs.tar.[0-9][0-9][0-9]"), out / "gpu_reproduce.json"]:
+        stale.unlink(missing_ok=True)  # unpack joins every piece it finds
+    shutil.rmtree(work / "stage", ignore_errors=True)
+    work.mkdir(parents=True, exist_ok=True)
     cfg = load_cfg(args)
-    src = Path(args.dir)
+    resumed = resume_sources(args.resume_from, args.preset)
+    labels = list(dict.fromkeys([*args.runs, *resumed]))
+    if not labels:
+        raise SystemExit("train: nothing to train; name runs with --runs or resume states with --resume-from")
+    for label in labels:
+        parse_label(label)
+    report: dict = {"preset": args.preset, "runs": {}, "resumed": {k: str(v[0]) for k, v in resumed.items()}}
+    data_hash = collect_data(cfg, args, report)
+    error = report.get("error") or (data_hash and wrong_data(resumed, data_hash))
+    if error:
+        report["error"] = error
+        (out / "gpu_reproduce.json").write_text(json.dumps(report, indent=1) + "\n")
+        log(error + ": nothing trained")
+        return 1
+    resumed = {k: v for k, v in resumed.items() if not (run_dir(cfg, k) / "done.json").exists()}
+    place_resumed(cfg, resumed)
+    todo = runs_to_train(cfg, labels, report)
+    deadline = start + args.deadline_s - args.reserve_s
+    procs = start_runs(args, todo, resumed, time.time() + deadline - time.monotonic(), work)
+    ended = wait_runs(procs, deadline)
+    return return_runs(cfg, args, todo, ended, resumed, data_hash, report, start)
+
+
+# -- here: unpacking and planning -------------------------------------------------------------------------------
+
+
+def local_data_hash(cfg) -> str:
+    from vitfly.datamodules.provenance import dataset_fingerprint
+
+    if not Path(cfg.data).exists():
+        raise SystemExit(f"{cfg.data}: no dataset here to check the returned runs against; collect it first "
+                         f"(vitfly reproduce --preset {cfg.preset} --stages data)")
+    return dataset_fingerprint(cfg.data)["dataset_hash"]
+
+
+def returned_hash(run: Path) -> str | None:
+    from scripts.gpu_slots import MARKER
+
+    if (run / "done.json").exists():
+        return (json.loads((run / "done.json").read_text()).get("trained_on") or {}).get("dataset_hash")
+    if (run / MARKER).exists():
+        return json.loads((run / MARKER).read_text()).get("dataset_hash")
+    raise SystemExit(f"{run}: neither done.json nor {MARKER}; not a run packed by gpu_reproduce.py train")
+
+
+def extract_returned(src: Path, tmp: Path) -> None:
+    """The returned runs, joined from their pieces and unpacked (safely) into the scratch folder ``tmp``."""
+    from scripts.gpu_slots import safe_extract
+
     pieces = sorted(src.glob("runs.tar.[0-9][0-9][0-9]"))
     if not pieces:
         raise SystemExit(f"{src}: no runs.tar.NNN pieces")
-    tmp = cfg.out_dir / "train" / ".gpu_unpack"
     shutil.rmtree(tmp, ignore_errors=True)
     tmp.mkdir(parents=True)
     tar_path = tmp / "runs.tar"
     with open(tar_path, "wb") as f:
         for piece in pieces:
             f.write(piece.read_bytes())
-    with tarfile.open(tar_path) as tar:
-        tar.extractall(tmp, filter="data")
+    safe_extract(tar_path, tmp)
     tar_path.unlink()
-    for run in sorted(p for p in tmp.iterdir() if p.is_dir()):
-        model, use_state = parse_label(run.name)
-        dst = cfg.train_dir(model, use_state)
-        if (dst / "done.json").exists():
-            print(f"{dst}: has a done.json; left alone")
-            continue
-        if dst.exists():  # an unfinished local attempt: the finished run replaces it
-            print(f"{dst}: unfinished here; replaced by the returned run")
-            shutil.rmtree(dst)
-        shutil.move(str(run), dst)
-        done = json.loads((dst / "done.json").read_text())
-        done["checkpoint"] = str((dst / done["checkpoint"]).resolve())
-        (dst / "done.json").write_text(json.dumps(done) + "\n")
-        print(f"{dst}: {done['trained_on']}")
-    shutil.rmtree(tmp)
+
+
+def place_finished(run: Path, dst: Path) -> None:
+    if dst.exists():  # an unfinished attempt (here or from a slot): the finished run replaces it
+        print(f"{dst}: unfinished here; replaced by the returned finished run")
+        shutil.rmtree(dst)
+    shutil.move(str(run), dst)
+    done = json.loads((dst / "done.json").read_text())
+    done["checkpoint"] = str((dst / done["checkpoint"]).resolve())
+    (dst / "done.json").write_text(json.dumps(done) + "\n")
+    print(f"{dst}: done; {done['trained_on']['epochs']} epochs on {done['trained_on']['device']}")
+
+
+def place_unfinished(run: Path, dst: Path) -> None:
+    from scripts.gpu_slots import MARKER, epochs_done, relocate_file
+
+    marker = json.loads((run / MARKER).read_text())
+    here = epochs_done(dst)
+    if here >= marker["epochs"]:
+        print(f"{dst}: already {here} epochs here; the returned state ({marker['epochs']} epochs) left out")
+        return
+    if dst.exists():
+        shutil.rmtree(dst)
+    shutil.move(str(run), dst)
+    relocate_file(dst / "checkpoints" / "last.ckpt")  # a resume here (vitfly reproduce) or in the next slot
+    print(f"{dst}: unfinished, {progress(marker)}")
+
+
+def progress(marker: dict) -> str:
+    minutes = sum(s["wall_s"] for s in marker["slots"]) / 60
+    devices = " + ".join(dict.fromkeys(s["device"] for s in marker["slots"]))
+    return f"{marker['epochs']}/{marker.get('max_epochs', '?')} epochs, {minutes:.1f} min on {devices}"
+
+
+def checked_runs(tmp: Path, src: Path, cfg, local: str) -> list[Path]:
+    """The returned run folders, every one checked (label, data hash against ``local``) before any is placed."""
+    runs = sorted(p for p in tmp.iterdir() if p.is_dir())
+    for run in runs:
+        parse_label(run.name)
+        if returned_hash(run) != local:
+            raise SystemExit(f"{src}: {run.name} was trained on dataset_hash {returned_hash(run)}; the local "
+                             f"{cfg.data} has {local}; nothing unpacked")
+    return runs
+
+
+def unpack(args: argparse.Namespace) -> int:
+    cfg = load_cfg(args)
+    src = Path(args.dir)
+    local = local_data_hash(cfg)
+    tmp = cfg.out_dir / "train" / ".gpu_unpack"
+    try:
+        extract_returned(src, tmp)
+        for run in checked_runs(tmp, src, cfg, local):
+            dst = run_dir(cfg, run.name)
+            if (dst / "done.json").exists():
+                print(f"{dst}: has a done.json; left alone")
+            elif (run / "done.json").exists():
+                place_finished(run, dst)
+            else:
+                place_unfinished(run, dst)
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
     return 0
 
 
-def main() -> int:
+def carry_path(path: Path) -> str:
+    """``path`` as the device tool's ``carry`` takes it: relative to the repository root (absolute if outside)."""
+    try:
+        return str(path.resolve().relative_to(ROOT))
+    except ValueError:
+        return str(path)
+
+
+def run_states(cfg) -> list[tuple[str, str, Path | None, int]]:
+    """(label, state, folder to carry or None, its bytes) for every run of the preset."""
+    from scripts.gpu_slots import MARKER, epochs_done, tree_bytes
+    from vitfly.workflows.reproduce_config import runs, train_stage
+
+    rows = []
+    for model, use_state in runs(cfg):
+        label = f"{model}-{'state' if use_state else 'nostate'}"
+        d = cfg.train_dir(model, use_state)
+        n = train_stage(cfg, model, use_state).max_epochs
+        if (d / "done.json").exists():
+            on = json.loads((d / "done.json").read_text()).get("trained_on")
+            rows.append((label, "done" + (f" ({on['epochs']} epochs on {on['device']})" if on else ""), None, 0))
+        elif (d / MARKER).exists():
+            marker = {**json.loads((d / MARKER).read_text()), "epochs": epochs_done(d), "max_epochs": n}
+            rows.append((label, f"unfinished: {progress(marker)}", d, tree_bytes(d)))
+        elif epochs_done(d):
+            rows.append((label, f"started here: {epochs_done(d)}/{n} epochs (vitfly reproduce resumes it)", None, 0))
+        else:
+            rows.append((label, "not started", None, 0))
+    return rows
+
+
+def status(args: argparse.Namespace) -> int:
+    from scripts.gpu_slots import CARRY_BYTES, mib
+
+    cfg = load_cfg(args)
+    rows = run_states(cfg)
+    width = max(len(r[0]) for r in rows)
+    for label, state, folder, size in rows:
+        print(f"{label:<{width}}  {state}" + (f"; carry {carry_path(folder)} ({mib(size)})" if folder else ""))
+    carry, later, total = [], [], 0
+    for label, _, folder, size in rows:
+        if folder is None:
+            continue
+        fits = total + size <= CARRY_BYTES
+        (carry if fits else later).append(label)
+        total += size if fits else 0
+    fresh = [r[0] for r in rows if r[1] == "not started"]
+    print(f"next slot carries {len(carry)} unfinished runs, {mib(total)} of {mib(CARRY_BYTES)}"
+          + (f"; {', '.join(later)} wait for a later slot (no room)" if later else ""))
+    if carry or fresh:
+        data_hash = local_data_hash(cfg) if Path(cfg.data).exists() else "HASH"
+        carried = [carry_path(run_dir(cfg, label)) for label in carry]
+        if any(Path(c).is_absolute() for c in carried):
+            print("  (outside the repository: the device tool carries only paths inside it)")
+        print(f"  carry: {json.dumps(carried)}\n  command: python3 scripts/gpu_reproduce.py train "
+              f"--preset {cfg.preset} --out $OUT --expect-data-hash {data_hash}"
+              + (f" --resume-from {' '.join(carried)}" if carried else "")
+              + (f" --runs {' '.join(fresh)}" if fresh else ""))
+    return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    from vitfly.errors import VitflyError
+
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     sub = parser.add_subparsers(dest="command", required=True)
-    for name in ("train", "train-one", "unpack"):
+    for name in ("train", "train-one", "unpack", "status"):
         p = sub.add_parser(name)
         p.add_argument("--config", default="configs/reproduce.yaml")
         p.add_argument("--preset", required=True)
@@ -228,18 +565,30 @@ def main() -> int:
     t = sub.choices["train"]
     t.add_argument("--out", required=True, help="what comes back: runs.tar.NNN and gpu_reproduce.json")
     t.add_argument("--work", default="/tmp/vitfly-gpu-reproduce", help="logs and packing")
-    t.add_argument("--runs", nargs="+", required=True, help="MODEL-state / MODEL-nostate labels")
+    t.add_argument("--runs", nargs="*", default=[], help="MODEL-state / MODEL-nostate labels")
+    t.add_argument("--resume-from", nargs="*", default=[], metavar="DIR",
+                   help="unfinished run folders (as unpack leaves them, carried here), or folders of them")
     t.add_argument("--expect-data-hash", help="the dataset_hash the collected file must have")
     t.add_argument("--collect-workers", type=int, default=14)
     t.add_argument("--threads", type=int, default=2, help="torch threads per run")
     t.add_argument("--deadline-s", type=float, default=560.0, help="the whole command, from its start")
     t.add_argument("--reserve-s", type=float, default=40.0, help="left after training for packing")
+    t.add_argument("--stop-after-epochs", type=int, help="epochs each run trains in this slot at most")
+    t.add_argument("--moments", choices=["fp32", "bf16"], default="fp32",
+                   help="Adam moments of unfinished runs (bf16: half their bytes, no longer an exact resume)")
+    t.add_argument("--return-mib", type=float, default=105.0, help="what the pieces may hold (7 x 15 MiB)")
     one = sub.choices["train-one"]
     one.add_argument("--threads", type=int, default=2)
+    one.add_argument("--stop-at", type=float, help="Unix time by which the last epoch must have ended")
+    one.add_argument("--stop-after-epochs", type=int)
+    one.add_argument("--epoch-s", type=float, help="expected epoch length until one is measured")
     one.add_argument("train_one", metavar="LABEL")
     sub.choices["unpack"].add_argument("dir", help="the folder holding runs.tar.NNN")
-    args = parser.parse_args()
-    return {"train": train, "train-one": train_one, "unpack": unpack}[args.command](args)
+    args = parser.parse_args(argv)
+    try:
+        return {"train": train, "train-one": train_one, "unpack": unpack, "status": status}[args.command](args)
+    except VitflyError as err:
+        raise SystemExit(str(err)) from None
 
 
 if __name__ == "__main__":

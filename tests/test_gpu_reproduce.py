@@ -1,62 +1,95 @@
-"""scripts/gpu_reproduce.py: runs of a reproduce preset trained in one place, carried home and taken as done.
+"""scripts/gpu_reproduce.py: runs of a reproduce preset trained in GPU slots, carried home, resumed, taken as done.
 
-Here both ends run on the CPU with the tiny preset: collect, refuse other data, train one run, pack it
-(fp16 network, no optimiser state), unpack it into a fresh run directory, and check that the reproduce
-workflow takes it as finished (no retraining) and reports its epochs from done.json.
+Here every end runs on the CPU with the tiny preset. A run finished in one slot comes home as done (fp16
+network, no optimiser state). A run stopped after 1 of 2 epochs comes home unfinished with its optimiser state,
+is resumed from a fresh directory in a second slot and ends with the weights and Adam moments of an
+uninterrupted 2-epoch run, bit for bit; with bf16 moments it ends close to them. Resume states and returned
+runs on other data are refused; finished runs are never trained again; ``status`` lists the runs and what the
+next slot carries; unpacking refuses unsafe archives on Pythons without tarfile's 'data' filter.
 """
 
 from __future__ import annotations
 
+import csv
+import importlib
+import io
 import json
+import os
+import re
 import shutil
 import subprocess
 import sys
+import tarfile
+import time
 from pathlib import Path
 
+import h5py
+import pytest
 import torch
+import yaml
 
 from vitfly.datamodules.provenance import dataset_fingerprint
-from vitfly.workflows.pipeline import stage_train
+from vitfly.workflows.pipeline import stage_collect, stage_train
 from vitfly.workflows.reproduce_config import load_reproduce_config, train_callbacks, train_stage
 from vitfly.workflows.reproduce_report import _training_table
 from vitfly.zoo import load_network
 
 REPO = Path(__file__).resolve().parents[1]
-SCRIPT = REPO / "scripts" / "gpu_reproduce.py"
 
 
-def script(*args: str) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, str(SCRIPT), *args], cwd=REPO, capture_output=True, text=True,
-                          timeout=600)
+def load_script(name: str):
+    """A module of scripts/, imported as the scripts import each other."""
+    if str(REPO) not in sys.path:
+        sys.path.insert(0, str(REPO))
+    return importlib.import_module(f"scripts.{name}")
 
 
-def test_runs_trained_elsewhere_come_back_as_done(tmp_path):
-    run_dir, data, out = tmp_path / "run", tmp_path / "tiny.h5", tmp_path / "back"
+@pytest.fixture(scope="module")
+def data(tmp_path_factory) -> Path:
+    """The tiny preset's dataset, collected once for every test here."""
+    path = tmp_path_factory.mktemp("data") / "tiny.h5"
+    cfg = load_reproduce_config(REPO / "configs" / "reproduce.yaml", "tiny", {"data": str(path)})
+    stage_collect(cfg.collect_config, cfg.collect, path, progress=False)
+    return path
+
+
+@pytest.fixture(scope="module")
+def two_epochs(tmp_path_factory) -> Path:
+    """configs/reproduce.yaml with the tiny preset trained for 2 epochs instead of 1."""
+    config = yaml.safe_load((REPO / "configs" / "reproduce.yaml").read_text())
+    config["presets"]["tiny"]["train"]["overrides"]["max_epochs"] = 2
+    path = tmp_path_factory.mktemp("config") / "reproduce.yaml"
+    path.write_text(yaml.safe_dump(config))
+    return path
+
+
+def test_runs_trained_elsewhere_come_back_as_done(tmp_path, data, capsys):
+    gpu = load_script("gpu_reproduce")
+    run_dir, out = tmp_path / "run", tmp_path / "back"
     where = ["--preset", "tiny", "--run-dir", str(run_dir), "--data", str(data)]
     train = ["train", *where, "--out", str(out), "--work", str(tmp_path / "work"), "--collect-workers", "1",
              "--threads", "1", "--runs", "convnet-nostate"]
 
-    refused = script(*train, "--expect-data-hash", "0000000000000000")
-    assert refused.returncode == 1, refused.stdout + refused.stderr
-    assert "nothing trained" in refused.stdout
+    assert gpu.main([*train, "--expect-data-hash", "0000000000000000"]) == 1
+    assert "nothing trained" in capsys.readouterr().out
     assert "!= expected 0000000000000000" in json.loads((out / "gpu_reproduce.json").read_text())["error"]
     assert not (run_dir / "train").exists()
 
     data_hash = dataset_fingerprint(data)["dataset_hash"]
-    done = script(*train, "--expect-data-hash", data_hash)
-    assert done.returncode == 0, done.stdout + done.stderr
+    assert gpu.main([*train, "--expect-data-hash", data_hash]) == 0
     report = json.loads((out / "gpu_reproduce.json").read_text())
-    assert report["runs"]["convnet-nostate"] == {"rc": 0, "packed": True}
+    assert report["runs"]["convnet-nostate"]["state"] == "finished"
+    assert report["runs"]["convnet-nostate"]["packed"] and report["runs"]["convnet-nostate"]["epochs"] == [0, 1]
     assert report["data"]["dataset_hash"] == data_hash
 
     trained = run_dir / "train" / "convnet-nostate"
     original = load_network(trained / "checkpoints" / "best.ckpt")
     shutil.rmtree(trained)
-    unpacked = script("unpack", *where, str(out))
-    assert unpacked.returncode == 0, unpacked.stdout + unpacked.stderr
+    assert gpu.main(["unpack", *where, str(out)]) == 0
     marker = json.loads((trained / "done.json").read_text())
     assert Path(marker["checkpoint"]) == (trained / "checkpoints" / "best.ckpt").resolve()
     assert marker["trained_on"]["epochs"] == 1 and marker["trained_on"]["steps"] == 2  # tiny: 1 epoch, 2 batches
+    assert marker["trained_on"]["dataset_hash"] == data_hash
     assert not (trained / "checkpoints" / "last.ckpt").exists()
     saved = torch.load(marker["checkpoint"], map_location="cpu", weights_only=True)
     assert "optimizer_states" not in saved
@@ -72,5 +105,190 @@ def test_runs_trained_elsewhere_come_back_as_done(tmp_path):
     assert not (trained / "checkpoints" / "last.ckpt").exists()  # taken as done, not trained again
     assert "| convnet-nostate | 1 | 2 |" in _training_table(cfg)
 
-    again = script("unpack", *where, str(out))
-    assert again.returncode == 0 and "left alone" in again.stdout
+    capsys.readouterr()
+    assert gpu.main(["unpack", *where, str(out)]) == 0 and "left alone" in capsys.readouterr().out
+
+
+def trained_state(path: Path) -> tuple[dict, dict]:
+    """(weights, Adam state) of a Lightning checkpoint."""
+    saved = torch.load(path, map_location="cpu", weights_only=True)
+    return saved["state_dict"], saved["optimizer_states"][0]["state"]
+
+
+def assert_same_training(a: Path, b: Path) -> None:
+    (weights_a, adam_a), (weights_b, adam_b) = trained_state(a), trained_state(b)
+    assert weights_a.keys() == weights_b.keys() and adam_a.keys() == adam_b.keys()
+    for name, value in weights_a.items():
+        assert torch.equal(value, weights_b[name]), name
+    for i, state in adam_a.items():
+        for key, value in state.items():
+            assert value.dtype == adam_b[i][key].dtype and torch.equal(value, adam_b[i][key]), (i, key)
+
+
+def test_a_run_stopped_in_one_slot_resumes_in_the_next_exactly(tmp_path, data, two_epochs, capsys):
+    gpu = load_script("gpu_reproduce")
+    common = ["--config", str(two_epochs), "--preset", "tiny", "--data", str(data)]
+    slot = ["--work", str(tmp_path / "work"), "--collect-workers", "1", "--threads", "1"]
+    data_hash = dataset_fingerprint(data)["dataset_hash"]
+    gpu1, home, gpu2 = tmp_path / "gpu1", tmp_path / "home", tmp_path / "gpu2"
+
+    # slot 1: stopped after 1 of 2 epochs, carried home with its optimiser state
+    assert gpu.main(["train", *common, "--run-dir", str(gpu1), "--out", str(tmp_path / "back1"), *slot,
+                     "--runs", "vit_lstm-state", "--stop-after-epochs", "1"]) == 0
+    entry = json.loads((tmp_path / "back1" / "gpu_reproduce.json").read_text())["runs"]["vit_lstm-state"]
+    assert (entry["state"], entry["epochs"], entry["max_epochs"], entry["packed"]) == ("unfinished", [0, 1], 2, True)
+
+    assert gpu.main(["unpack", *common, "--run-dir", str(home), str(tmp_path / "back1")]) == 0
+    run = home / "train" / "vit_lstm-state"
+    assert not (run / "done.json").exists()  # never as done
+    marker = json.loads((run / "unfinished.json").read_text())
+    assert (marker["epochs"], marker["max_epochs"], marker["dataset_hash"]) == (1, 2, data_hash)
+    assert marker["slots"][0]["device"] == "cpu" and marker["moments"] == "fp32"
+    saved = torch.load(run / "checkpoints" / "last.ckpt", map_location="cpu", weights_only=True)
+    assert (saved["epoch"], saved["global_step"]) == (0, 2)
+    assert saved["optimizer_states"][0]["state"][0]["exp_avg_sq"].dtype == torch.float32
+    dirs = {s["dirpath"] for s in saved["callbacks"].values() if "dirpath" in s}
+    assert dirs == {os.path.realpath(run / "checkpoints")}  # pointed at its new home
+
+    capsys.readouterr()
+    assert gpu.main(["status", *common, "--run-dir", str(home)]) == 0
+    listing = capsys.readouterr().out
+    assert "vit_lstm-state   unfinished: 1/2 epochs" in listing and "convnet-state    not started" in listing
+    assert re.search(r"next slot carries 1 unfinished runs, 4\d\.\d MiB of 64\.0 MiB", listing)  # ViT+LSTM: 48
+    assert f"--resume-from {run}" in listing
+
+    # a resume state of other data is refused before anything trains
+    bad = tmp_path / "bad" / "vit_lstm-state"
+    shutil.copytree(run, bad)
+    (bad / "unfinished.json").write_text(json.dumps({**marker, "dataset_hash": "0000000000000000"}))
+    refused = ["train", *common, "--run-dir", str(gpu2), "--out", str(tmp_path / "refused"), *slot]
+    assert gpu.main([*refused, "--resume-from", str(bad)]) == 1
+    error = json.loads((tmp_path / "refused" / "gpu_reproduce.json").read_text())["error"]
+    assert "trained on dataset_hash 0000000000000000" in error and not (gpu2 / "train").exists()
+
+    # slot 2, another machine: it goes on from epoch 1 and finishes
+    assert gpu.main(["train", *common, "--run-dir", str(gpu2), "--out", str(tmp_path / "back2"), *slot,
+                     "--resume-from", str(run)]) == 0
+    entry = json.loads((tmp_path / "back2" / "gpu_reproduce.json").read_text())["runs"]["vit_lstm-state"]
+    assert (entry["state"], entry["epochs"], entry["packed"]) == ("finished", [1, 2], True)
+
+    # ... exactly where an uninterrupted 2-epoch run ends (its LSTM dropout included)
+    cfg = load_reproduce_config(two_epochs, "tiny", {"data": str(data)})
+    stage, callbacks = train_callbacks(train_stage(cfg, "vit_lstm", True), cfg, "test")
+    reference = tmp_path / "reference"
+    stage_train(stage, data, reference, 1, progress=False, callbacks=callbacks)
+    resumed = gpu2 / "train" / "vit_lstm-state"
+    assert_same_training(reference / "checkpoints" / "last.ckpt", resumed / "checkpoints" / "last.ckpt")
+    metrics = (resumed / "metrics.earlier.csv").read_text() + (resumed / "metrics.csv").read_text()
+    assert metrics.count("val/loss") == 2  # both slots' epochs: the first set aside, joined when packed
+
+    assert gpu.main(["unpack", *common, "--run-dir", str(home), str(tmp_path / "back2")]) == 0
+    assert not (run / "unfinished.json").exists()
+    done = json.loads((run / "done.json").read_text())
+    assert (done["trained_on"]["epochs"], len(done["trained_on"]["slots"])) == (2, 2)
+    with open(run / "metrics.csv") as f:
+        assert [r["epoch"] for r in csv.DictReader(f) if r["val/loss"]] == ["0", "1"]  # the curve of both slots
+    best = load_network(done["checkpoint"]).state_dict()
+    for name, value in load_network(reference / "checkpoints" / "best.ckpt").state_dict().items():
+        assert torch.equal(value.half().float() if value.is_floating_point() else value, best[name]), name
+
+    # finished: never trained again, here or there
+    capsys.readouterr()
+    assert gpu.main(["train", *common, "--run-dir", str(gpu2), "--out", str(tmp_path / "back3"), *slot,
+                     "--runs", "vit_lstm-state"]) == 0
+    assert "not retrained" in capsys.readouterr().out and not list((tmp_path / "back3").glob("runs.tar.*"))
+    assert gpu.main(["unpack", *common, "--run-dir", str(home), str(tmp_path / "back1")]) == 0
+    assert "left alone" in capsys.readouterr().out and not (run / "unfinished.json").exists()
+    assert gpu.main(["status", *common, "--run-dir", str(home)]) == 0
+    assert "vit_lstm-state   done (2 epochs on cpu)" in capsys.readouterr().out
+
+    # returned runs of other data are refused as a whole
+    other = tmp_path / "other.h5"
+    shutil.copy(data, other)
+    with h5py.File(other, "r+") as f:
+        f.attrs["note"] = "another dataset"
+    with pytest.raises(SystemExit, match="trained on dataset_hash .* the local .*other.h5 has .* nothing unpacked"):
+        gpu.main(["unpack", "--config", str(two_epochs), "--preset", "tiny", "--data", str(other),
+                  "--run-dir", str(tmp_path / "elsewhere"), str(tmp_path / "back1")])
+    assert not (tmp_path / "elsewhere" / "train" / "vit_lstm-state").exists()
+
+    # Adam moments in bf16: a third of the bytes less, and the resumed run ends close to the exact one
+    slots = load_script("gpu_slots")
+    light = tmp_path / "bf16"
+    shutil.copytree(gpu1 / "train" / "vit_lstm-state", light)
+    last = light / "checkpoints" / "last.ckpt"
+    slots.save_atomic(slots.relocate(slots.compact_moments(torch.load(last, weights_only=True), "bf16"),
+                                     last.parent), last)
+    assert trained_state(last)[1][0]["exp_avg"].dtype == torch.bfloat16
+    start = trained_state(last)[0]
+    stage_train(stage, data, light, 1, progress=False, callbacks=callbacks)
+    (exact, _), (close, adam) = trained_state(reference / "checkpoints" / "last.ckpt"), trained_state(last)
+    assert adam[0]["exp_avg"].dtype == torch.float32  # back in fp32 once loaded
+    moved, off = (torch.cat([(a[k] - b[k]).flatten() for k in exact]).norm() for a, b in ((exact, start),
+                                                                                          (exact, close)))
+    assert 0 < off < 0.01 * moved  # measured: 0.14 % of the distance the resumed epoch moved the weights
+
+
+def test_a_slot_stops_a_run_before_an_epoch_that_would_end_too_late():
+    slots = load_script("gpu_slots")
+    assert slots.stop_reason(100.0, None, None, 0, None) is None
+    assert slots.stop_reason(100.0, 200.0, None, 5, None) is None  # no epoch measured yet: start one
+    assert slots.stop_reason(100.0, 200.0, 90.0, 1, None) is None
+    assert "deadline" in slots.stop_reason(100.0, 200.0, 120.0, 1, None)
+    assert "--stop-after-epochs" in slots.stop_reason(100.0, 200.0, 1.0, 2, 2)
+
+
+def test_a_run_still_going_at_the_deadline_is_killed():
+    gpu = load_script("gpu_reproduce")
+    quick = subprocess.Popen([sys.executable, "-c", "pass"], start_new_session=True)
+    slow = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(60)"], start_new_session=True)
+    now = time.monotonic()
+    ended = gpu.wait_runs({"quick": (quick, now), "slow": (slow, now)}, now + 3)
+    assert ended["quick"][0] == 0 and ended["slow"][0] is None and 3 <= ended["slow"][1] < 30
+    assert slow.poll() is not None
+
+
+def write_tar(path: Path, build) -> Path:
+    with tarfile.open(path, "w") as tar:
+        build(tar)
+    return path
+
+
+@pytest.mark.parametrize("filter_present", [True, False], ids=["data_filter", "python_3.11.2"])
+def test_unpacking_stays_inside_its_folder_on_every_python(tmp_path, monkeypatch, filter_present):
+    slots = load_script("gpu_slots")
+    if not filter_present:  # TarFile.extractall(filter=...) arrived in 3.10.12 / 3.11.4
+        monkeypatch.delattr(tarfile, "data_filter", raising=False)
+    (tmp_path / "run").mkdir()
+    (tmp_path / "run" / "done.json").write_text("{}")
+    good = write_tar(tmp_path / "good.tar", lambda tar: tar.add(tmp_path / "run", arcname="run"))
+    slots.safe_extract(good, tmp_path / "into")
+    assert (tmp_path / "into" / "run" / "done.json").read_text() == "{}"
+
+    def member(name: str, kind: bytes = tarfile.REGTYPE, target: str = ""):
+        def build(tar):
+            info = tarfile.TarInfo(name)
+            info.type, info.linkname, info.size = kind, target, 2 if kind == tarfile.REGTYPE else 0
+            tar.addfile(info, io.BytesIO(b"{}") if kind == tarfile.REGTYPE else None)
+        return build
+
+    for i, build in enumerate([member("../escaped.json"), member("/tmp/absolute.json"),
+                               member("run/link", tarfile.SYMTYPE, "/etc/passwd"),
+                               member("run/hard", tarfile.LNKTYPE, "../../escaped.json")]):
+        bad = write_tar(tmp_path / f"bad{i}.tar", build)
+        with pytest.raises(SystemExit, match=f"{bad}: member"):
+            slots.safe_extract(bad, tmp_path / f"bad{i}")
+        assert not (tmp_path / f"bad{i}").exists()  # refused before anything is written
+
+
+def test_bf16_moments_load_back_as_fp32():
+    slots = load_script("gpu_slots")
+    param = torch.nn.Parameter(torch.randn(5))
+    adam = torch.optim.Adam([param])
+    param.grad = torch.randn(5)
+    adam.step()
+    light = slots.compact_moments({"optimizer_states": [adam.state_dict()]}, "bf16")["optimizer_states"][0]
+    again = torch.optim.Adam([param])
+    again.load_state_dict(light)
+    assert again.state[param]["exp_avg"].dtype == torch.float32  # torch casts to the parameter's dtype
+    assert torch.equal(again.state[param]["exp_avg"], adam.state[param]["exp_avg"].bfloat16().float())

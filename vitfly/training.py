@@ -68,8 +68,10 @@ def train_policy(
 
     Writes ``out_dir/checkpoints/{best,last}.ckpt``, ``out_dir/metrics.csv`` and ``out_dir/split.json``.
     An interrupted run resumes from ``out_dir/checkpoints/last.ckpt`` when called again with the same
-    arguments; a finished run returns at once. The split is frozen in ``out_dir/split.json``: a later call on
-    a dataset that grew keeps the validation trajectories and trains on the new ones as well.
+    arguments, as the uninterrupted run would have gone on (the random generators' state travels in the
+    checkpoint: ``vitfly.training_checkpoints.RngState``); a finished run returns at once. The split is frozen
+    in ``out_dir/split.json``: a later call on a dataset that grew keeps the validation trajectories and trains
+    on the new ones as well.
     ``policy_kwargs`` go to PolicyModule (e.g. lr, tbptt_steps), ``data_kwargs`` to TrajectoryDataModule,
     ``trainer_kwargs`` to lightning.Trainer, ``callbacks`` join the Trainer's (e.g.
     ``vitfly.workflows.closed_loop_check.ClosedLoopCheck``). ``init_weights`` (a checkpoint of the same network,
@@ -82,7 +84,7 @@ def train_policy(
     from lightning.pytorch.loggers import CSVLogger
 
     from vitfly.datamodules.datamodule import TrajectoryDataModule
-    from vitfly.training_checkpoints import LastCheckpoint
+    from vitfly.training_checkpoints import LastCheckpoint, RngState
     from vitfly.zoo.policy import create_policy
 
     out_dir = Path(out_dir)
@@ -101,7 +103,8 @@ def train_policy(
     checkpoint = ModelCheckpoint(dirpath=ckpt_dir, **checkpoint_defaults())
     # best first: Trainer.checkpoint_callback (ckpt_path="best") is the first ModelCheckpoint
     bar = [RichProgressBar()] if progress_bar else []
-    callbacks = [checkpoint, LastCheckpoint(ckpt_dir), *bar, *(callbacks or [])]
+    # RngState: a resumed run draws the dropout masks the uninterrupted one would have drawn
+    callbacks = [checkpoint, LastCheckpoint(ckpt_dir), RngState(), *bar, *(callbacks or [])]
     trainer = L.Trainer(
         max_epochs=max_epochs,
         default_root_dir=out_dir,

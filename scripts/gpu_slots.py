@@ -1,0 +1,208 @@
+"""Resume states of runs that ``scripts/gpu_reproduce.py`` trains across GPU slots: what travels, and how it is
+checked and put back in place.
+
+An unfinished run travels as its run directory: ``checkpoints/last.ckpt`` (the Lightning checkpoint of its last
+finished epoch: fp32 weights, the Adam moments, loop and callback state, the random generators' state),
+``checkpoints/best.ckpt`` (the best epoch so far, network weights in fp16, as every returned run's), metrics,
+split and ``unfinished.json``, the marker this module writes and reads (epochs done, data hash, slots so far).
+Checkpoints are taken at epoch ends only: Lightning resumes an epoch-end checkpoint exactly, a mid-epoch one
+replays batches.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import os
+import shutil
+import tarfile
+import time
+from pathlib import Path
+
+from lightning.pytorch.callbacks import Callback
+
+MARKER = "unfinished.json"
+EARLIER_METRICS = "metrics.earlier.csv"  # earlier slots' rows: Lightning's CSVLogger empties metrics.csv on resume
+CARRY_BYTES = 64 * 2**20  # what the device tool carries to the machine, all paths together
+MOMENTS = ("exp_avg", "exp_avg_sq", "max_exp_avg_sq")  # Adam's per-parameter state besides `step`
+
+
+class SlotEnded(Exception):
+    """Raised at an epoch start to end a run's slot cleanly: the previous epoch's last.ckpt is on disk."""
+
+
+def stop_reason(now: float, stop_at: float | None, epoch_s: float | None, trained: int,
+                max_epochs_this_slot: int | None) -> str | None:
+    """Why a run should not start another epoch in this slot (None: it should)."""
+    if max_epochs_this_slot is not None and trained >= max_epochs_this_slot:
+        return f"{trained} epochs this slot (--stop-after-epochs)"
+    if stop_at is not None and epoch_s is not None and now + epoch_s > stop_at:
+        return f"another epoch (about {epoch_s:.0f} s) would end after the slot's deadline"
+    return None
+
+
+class SlotStop(Callback):
+    """Ends training at an epoch start when the next epoch would not finish before ``stop_at`` (a Unix time),
+    or after ``max_epochs_this_slot`` epochs. ``epoch_s``: the expected epoch length before one is measured
+    here (the previous slot's); then the longest epoch measured here, validation included."""
+
+    def __init__(self, stop_at: float | None, max_epochs_this_slot: int | None, epoch_s: float | None = None):
+        self.stop_at, self.max_epochs_this_slot, self.epoch_s = stop_at, max_epochs_this_slot, epoch_s
+        self.trained, self._started = 0, None
+
+    def on_train_epoch_start(self, trainer, pl_module) -> None:
+        now = time.time()
+        if self._started is not None:
+            self.trained += 1
+            self.epoch_s = max(self.epoch_s or 0.0, now - self._started)
+        reason = stop_reason(now, self.stop_at, self.epoch_s, self.trained, self.max_epochs_this_slot)
+        if reason:
+            raise SlotEnded(reason)
+        self._started = now
+
+
+def compact_moments(checkpoint: dict, dtype: str) -> dict:
+    """Adam's moments in ``dtype`` (``fp32``: as they are; ``bf16``: half the bytes, fp32's exponent range, 8
+    significant bits). ``torch.optim`` casts them back to the parameters' dtype when the run resumes."""
+    import torch
+
+    if dtype == "fp32":
+        return checkpoint
+    for opt in checkpoint.get("optimizer_states", []):
+        for state in opt["state"].values():
+            for key in MOMENTS:
+                if key in state:
+                    state[key] = state[key].to(torch.bfloat16)
+    return checkpoint
+
+
+def moved(path, old: str, new: str):
+    if not isinstance(path, str) or not old:
+        return path
+    if path == old:
+        return new
+    return new + path[len(old):] if path.startswith(old + os.sep) else path
+
+
+def relocate(checkpoint: dict, ckpt_dir: Path) -> dict:
+    """Point the checkpoint callbacks' state at ``ckpt_dir``. ModelCheckpoint forgets its best score when the
+    directory it saved from differs from its own, and would then take the next epoch as the best."""
+    new = os.path.realpath(ckpt_dir)  # as ModelCheckpoint resolves its dirpath
+    for state in checkpoint.get("callbacks", {}).values():
+        old = state.get("dirpath") if isinstance(state, dict) else None
+        if not isinstance(old, str):
+            continue
+        for key in ("dirpath", "best_model_path", "kth_best_model_path", "last_model_path"):
+            if key in state:
+                state[key] = moved(state[key], old, new)
+        if isinstance(state.get("best_k_models"), dict):
+            state["best_k_models"] = {moved(k, old, new): v for k, v in state["best_k_models"].items()}
+    return checkpoint
+
+
+def save_atomic(obj: dict, path: Path) -> None:
+    import torch
+
+    tmp = path.with_name(path.name + ".tmp")
+    torch.save(obj, tmp)
+    os.replace(tmp, path)
+
+
+def relocate_file(last: Path) -> None:
+    import torch
+
+    save_atomic(relocate(torch.load(last, map_location="cpu", weights_only=True), last.parent), last)
+
+
+def epochs_done(run_dir: Path) -> int:
+    """Epochs finished by the run's last.ckpt (0 without one); memory-mapped, so only the header is read."""
+    import torch
+
+    last = run_dir / "checkpoints" / "last.ckpt"
+    if not last.exists():
+        return 0
+    return int(torch.load(last, map_location="cpu", weights_only=True, mmap=True)["epoch"]) + 1
+
+
+def read_marker(run_dir: Path) -> dict:
+    path = run_dir / MARKER
+    try:
+        marker = json.loads(path.read_text())
+    except (OSError, ValueError) as err:
+        raise SystemExit(f"{path}: not a readable resume marker ({err})") from None
+    for key in ("label", "preset", "dataset_hash", "epochs", "slots"):
+        if key not in marker:
+            raise SystemExit(f"{path}: field {key!r} missing; expected a marker written by gpu_reproduce.py")
+    return marker
+
+
+def merge_metrics(parts: list[Path], dst: Path, epochs: int | None = None) -> None:
+    """The rows of ``parts`` (CSVLogger files, oldest first) as one CSV in ``dst``, columns united; with
+    ``epochs``, only rows of epochs below it (a killed run's rows of the epoch it did not finish go)."""
+    header: list[str] = []
+    rows: list[dict] = []
+    for part in parts:
+        if not part.exists():
+            continue
+        with open(part, newline="") as f:
+            reader = csv.DictReader(f)
+            header += [c for c in reader.fieldnames or [] if c not in header]
+            rows += [r for r in reader if epochs is None or not r.get("epoch") or float(r["epoch"]) < epochs]
+    if not header:
+        return
+    tmp = dst.with_name(dst.name + ".tmp")
+    with open(tmp, "w", newline="") as f:
+        writer = csv.DictWriter(f, fieldnames=header)
+        writer.writeheader()
+        writer.writerows(rows)
+    os.replace(tmp, dst)
+
+
+def set_metrics_aside(run_dir: Path) -> None:
+    """Before a run resumes: its metrics so far into metrics.earlier.csv, which the packing joins again."""
+    current, earlier = run_dir / "metrics.csv", run_dir / EARLIER_METRICS
+    if current.exists():
+        merge_metrics([earlier, current], earlier, epochs_done(run_dir))
+        current.unlink()
+
+
+def tree_bytes(path: Path) -> int:
+    return sum(p.stat().st_size for p in path.rglob("*") if p.is_file())
+
+
+def mib(n: int) -> str:
+    return f"{n / 2**20:.1f} MiB"
+
+
+def check_member(member: tarfile.TarInfo, tar_path: Path) -> None:
+    """Refuse what the 'data' filter refuses and more: absolute or '..' paths, links, devices, fifos."""
+    parts = Path(member.name).parts
+    if member.name.startswith(("/", "\\")) or Path(member.name).is_absolute() or ".." in parts:
+        raise SystemExit(f"{tar_path}: member {member.name!r} points outside the folder it unpacks into")
+    if not (member.isfile() or member.isdir()):
+        raise SystemExit(f"{tar_path}: member {member.name!r} is a link or special file; expected files and folders")
+
+
+def safe_extract(tar_path: Path, dest: Path) -> None:
+    """Unpack ``tar_path`` into ``dest`` and nowhere else, on every Python >= 3.10: every member checked here
+    first, then tarfile's 'data' filter where it exists (3.10.12, 3.11.4, 3.12; not Debian bookworm's 3.11.2)."""
+    with tarfile.open(tar_path) as tar:
+        members = tar.getmembers()
+        for member in members:
+            check_member(member, tar_path)
+        if hasattr(tarfile, "data_filter"):
+            tar.extractall(dest, members=members, filter="data")
+            return
+        for member in members:
+            member.mode &= 0o755  # what the filter would do: no set-uid, set-gid or world-writable bits
+        tar.extractall(dest, members=members)
+
+
+def copy_run(src: Path, dst: Path) -> None:
+    """``src`` as ``dst`` (a stale ``dst`` replaced); nothing to do when they are the same folder."""
+    if dst.exists() and dst.resolve() == src.resolve():
+        return
+    if dst.exists():
+        shutil.rmtree(dst)
+    dst.parent.mkdir(parents=True, exist_ok=True)
+    shutil.copytree(src, dst)
