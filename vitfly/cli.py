@@ -8,7 +8,9 @@ and ``run(args) -> int``. Modules are imported lazily so ``vitfly --help`` stays
 from __future__ import annotations
 
 import argparse
+import errno
 import importlib
+import re
 import sys
 
 from vitfly.errors import VitflyError
@@ -49,6 +51,23 @@ def _build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def os_error_line(err: OSError) -> str:
+    """One line for an error of the operating system: the path, what went wrong, what to do."""
+    what = err.strerror or str(err)
+    where = err.filename if err.filename is not None else ""
+    h5 = re.search(r"name = '([^']+)'.*?error message = '([^']+)'", what)  # h5py names the file in its message
+    if not where and h5:
+        where, what = h5.group(1), h5.group(2)
+    # writers create a hidden temporary beside the output (.NAME.tmp-PID): name the output itself
+    where = re.sub(r"(^|/)\.([^/]+?)\.(tmp-\d+|[A-Za-z0-9_]{8}\.tmp\.\w+)$", r"\1\2", str(where))
+    hint = {errno.ENOSPC: "; free some space and rerun the same command to resume",
+            errno.EDQUOT: "; free some space and rerun the same command to resume",
+            errno.EACCES: "; choose a location you may write to",
+            errno.EROFS: "; choose a location you may write to",
+            errno.ENOENT: "; check that the folder exists and is writable"}.get(err.errno, "")
+    return " ".join(f"{where + ': ' if where else ''}{what}{hint}".split())
+
+
 def main(argv: list[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     parser = _build_parser()
@@ -72,6 +91,9 @@ def main(argv: list[str] | None = None) -> int:
         return int(module.run(sub_parser.parse_args(rest)) or 0)
     except VitflyError as err:
         print(f"vitfly: error: {err}", file=sys.stderr)
+        return 2
+    except OSError as err:  # an unwritable or missing location, permission denied, a full disk: bad input too
+        print(f"vitfly: error: {os_error_line(err)}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
         print("vitfly: interrupted; rerun the same command to resume", file=sys.stderr)
