@@ -11,6 +11,23 @@ Two measurements, each run in a fresh subprocess per sample so that both revisio
   for ``--fit-batches`` training batches without validation; frames/s over the batches after the first
   ``--fit-skip`` (which carry start-up and compilation), data loading included.
 
+- ``--arm paper|vitfly``: each model as one arm of the paper-budget study trains it, with the batch, TBPTT
+  chunks, precision, static shapes (``time_bucket_steps``) and compile mode of its preset in
+  configs/reproduce.yaml (``paper``: one trajectory per optimiser step, padded to a 64-step bucket, CUDA
+  graphs; ``paper_vitfly``: 64 trajectories in TBPTT chunks, compiled), on a synthetic batch of
+  ``--steps`` real steps per trajectory (default 418, the mean flight of the laptop preset's data). In
+  ``--modes``: ``recipe`` (the preset as it is), ``eager`` (no compilation), ``unpadded`` (no compilation,
+  no padding, no static shapes: the default path), ``fp32`` / ``bf16`` (the recipe in that precision).
+  Frames/s count real frames (not padding).
+
+Every step-mode row also gives the model's arithmetic rate: FLOPs per frame of one optimiser step (forward
+and backward) from ``torch.utils.flop_counter.FlopCounterMode``, counted once per model on the CPU in fp32 on
+one 32-frame trajectory (every counted operation is per frame or per LSTM step, so the count per frame holds
+for any batch: exactly for the encoders, within 1 % for the LSTMs), times the real frames/s: TFLOP/s, and its
+share of the device's dense peak for the precision (``PEAK_TFLOPS``: NVIDIA's datasheets; bf16 runs against
+the BF16 tensor-core peak, fp32 runs against the TF32 tensor-core peak, since cuDNN runs fp32 convolutions
+in TF32 by default). On a CPU the share is n/a unless ``--peak-tflops`` gives the peak.
+
 ``--baseline-rev REV`` exports REV (``git archive``) to a temporary folder and runs the same
 measurements against it (PYTHONPATH pointed there), alternating baseline and new sample by sample,
 ``--repeats`` times; the tables give medians, the spread (min-max over repeats) and new / baseline.
@@ -18,6 +35,8 @@ On a shared machine every number moves with the other load: compare only numbers
 
     .venv/bin/python benchmarks/train_speed.py [--models convnet vit_lstm] [--modes fp32 bf16 compiled]
     .venv/bin/python benchmarks/train_speed.py --fit --data data/speed40.h5 --models vit_lstm --baseline-rev 08f93e2
+    .venv/bin/python benchmarks/train_speed.py --arm paper --modes recipe eager unpadded --iters 20 --warmup 5
+    .venv/bin/python benchmarks/train_speed.py --arm vitfly --models convnet vit_lstm --batch 2 --steps 64  # CPU-sized
 """
 
 from __future__ import annotations
@@ -32,12 +51,26 @@ import sys
 import tarfile
 import tempfile
 import time
+import warnings
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parent.parent
 BENCH_DIR = Path(__file__).resolve().parent
 MODES = ("fp32", "bf16", "compiled", "compiled-bf16")
 ALL_MODELS = ("convnet", "lstmnet", "unet_lstm", "vit", "vit_lstm", "resnet18")
+ARMS = {"paper": "paper", "vitfly": "paper_vitfly"}  # --arm -> its preset in configs/reproduce.yaml
+ARM_MODES = ("recipe", "eager", "unpadded", "fp32", "bf16")
+MEAN_FLIGHT_STEPS = 418  # the laptop preset's 200 expert flights: 83,681 frames
+FLOP_COUNT_STEPS = 32  # frames of the trajectory the FLOPs are counted on
+# NVIDIA datasheet figures, TFLOP/s: FP32 (CUDA cores, dense), TF32 and BF16 tensor cores as printed "with
+# sparsity"; dense is half of those. Keys are matched against torch.cuda.get_device_name(), most specific first.
+DATASHEET_TFLOPS = {
+    "H100 PCIe": {"fp32": 51.0, "tf32_sparse": 756.0, "bf16_sparse": 1513.0},
+    "H100 NVL": {"fp32": 60.0, "tf32_sparse": 835.0, "bf16_sparse": 1671.0},
+    "H100": {"fp32": 67.0, "tf32_sparse": 989.0, "bf16_sparse": 1979.0},  # SXM5 ("NVIDIA H100 80GB HBM3")
+    "H200 NVL": {"fp32": 60.0, "tf32_sparse": 835.0, "bf16_sparse": 1671.0},
+    "H200": {"fp32": 67.0, "tf32_sparse": 989.0, "bf16_sparse": 1979.0},  # SXM
+}
 
 
 # -- measured in a subprocess (imports whichever vitfly PYTHONPATH points at) -----------------------
@@ -102,6 +135,65 @@ def measure_steps(
     return {"fps": batch * steps / statistics.median(times), "warmup_s": warmup_s}
 
 
+def measure_arm(
+    model: str, policy_kwargs: dict, batch: int, steps: int, bucket: int | None, precision: str, iters: int,
+    warmup: int, device: str, threads: int | None = None,
+) -> dict:
+    """frames/s (real frames) of ``iters`` batches after ``warmup``, each trained as the arm's recipe trains it:
+    one optimiser step per TBPTT chunk (one per batch when ``tbptt_steps`` is None), gradient clipping as set,
+    the batch padded to the ``bucket`` as the datamodule pads it."""
+    import torch
+
+    if threads:
+        torch.set_num_threads(threads)
+    from vitfly.zoo.policy import create_policy, detach_hidden
+
+    torch.manual_seed(0)
+    module = create_policy(model, **policy_kwargs).to(device)
+    module.train()
+    optimizer = module.configure_optimizers()
+    data = synthetic_batch(batch, steps, device)
+    if bucket:
+        from vitfly.datamodules.dataset import pad_to_bucket
+
+        data = pad_to_bucket(data, bucket, batch)
+    dev = torch.device(device)
+    autocast = torch.autocast(dev.type, dtype=torch.bfloat16) if precision == "bf16" else contextlib.nullcontext()
+    clip = policy_kwargs.get("gradient_clip_val")
+
+    def one_batch() -> None:
+        chunk_batch = dict(data)
+        chunk_batch["depth"] = chunk_batch["depth"].to(torch.float32).mul_(1.0 / 255.0)
+        hidden = None
+        for chunk in module.tbptt_chunks(chunk_batch):
+            with autocast:
+                loss, hidden = module.chunk_loss(chunk, hidden)
+            optimizer.zero_grad()
+            loss.backward()
+            if clip:
+                torch.nn.utils.clip_grad_norm_(module.parameters(), clip)
+            optimizer.step()
+            hidden = detach_hidden(hidden)
+        if dev.type == "cuda":
+            torch.cuda.synchronize()
+
+    start = time.perf_counter()
+    for _ in range(warmup):
+        one_batch()
+    warmup_s = time.perf_counter() - start
+    times = []
+    for _ in range(iters):
+        start = time.perf_counter()
+        one_batch()
+        times.append(time.perf_counter() - start)
+    from torch._dynamo.utils import counters
+
+    return {"fps": batch * steps / statistics.median(times), "warmup_s": warmup_s, "padded": list(data["mask"].shape),
+            # compiled graphs, and how often inductor fell back from CUDA graphs (reasons on stderr)
+            "graphs": int(counters["stats"]["unique_graphs"]),
+            "cudagraph_skips": int(counters["inductor"]["cudagraph_skips"])}
+
+
 def measure_fit(model: str, root: str, data: str, batches: int, skip: int) -> dict:
     """frames/s of ``vitfly fit`` with ``root``'s configs/fit/<model>.yaml over batches skip+1..batches."""
     with tempfile.TemporaryDirectory() as tmp:
@@ -127,7 +219,8 @@ def measure_fit(model: str, root: str, data: str, batches: int, skip: int) -> di
 def worker_main(argv: list[str]) -> None:
     spec = json.loads(argv[0])
     kind = spec.pop("kind")
-    result = measure_steps(**spec) if kind == "step" else measure_fit(**spec)
+    measure = {"step": measure_steps, "arm": measure_arm, "fit": measure_fit}[kind]
+    result = measure(**spec)
     print("RESULT " + json.dumps(result), flush=True)
 
 
@@ -149,25 +242,108 @@ def run_sample(code_root: Path, spec: dict) -> dict:
         [sys.executable, str(Path(__file__).resolve()), "--worker", json.dumps(spec)],
         cwd=code_root, env=env, capture_output=True, text=True,
     )  # fmt: skip
+    for line in dict.fromkeys(proc.stderr.splitlines()):  # inductor says why it ran without CUDA graphs
+        if "skipping cudagraphs" in line:
+            print(f"  {spec['model']}: {line.strip()}", file=sys.stderr)
     for line in proc.stdout.splitlines():
         if line.startswith("RESULT "):
             return json.loads(line[len("RESULT ") :])
     raise RuntimeError(f"measurement {spec} in {code_root} failed (exit {proc.returncode}):\n{proc.stderr[-3000:]}")
 
 
+def arm_settings(arm: str, model: str, mode: str) -> dict:
+    """The batch, PolicyModule arguments, bucket and precision with which ``arm`` trains ``model``: its preset's
+    recipe and overrides (``vitfly.workflows.reproduce_config.train_stage``), changed as ``mode`` says."""
+    from vitfly.workflows.reproduce_config import load_reproduce_config, train_stage
+
+    cwd = os.getcwd()
+    os.chdir(ROOT)  # the presets name their recipes relative to the repository
+    try:
+        stage = train_stage(load_reproduce_config(ROOT / "configs" / "reproduce.yaml", ARMS[arm]), model, True)
+    finally:
+        os.chdir(cwd)
+    kept = ("tbptt_steps", "avoid_weight", "gradient_clip_val", "static_shapes", "compile")
+    policy = {k: stage.policy_kwargs[k] for k in kept if k in stage.policy_kwargs}
+    bucket = stage.data_kwargs.get("time_bucket_steps")
+    precision = "bf16" if "bf16" in str(stage.trainer_kwargs.get("precision", "")) else "fp32"
+    if mode in ("eager", "unpadded"):
+        policy["compile"] = False
+    if mode == "unpadded":
+        policy["static_shapes"], bucket = False, None
+    if mode in ("fp32", "bf16"):
+        precision = mode
+    return {"batch": stage.batch_size, "policy_kwargs": policy, "bucket": bucket, "precision": precision}
+
+
+def flops_per_frame(model: str) -> float:
+    """FLOPs of one optimiser step's forward and backward per frame (see the module docstring), fp32, CPU."""
+    import torch
+    from torch.utils.flop_counter import FlopCounterMode
+
+    from vitfly.zoo.policy import create_policy
+
+    module = create_policy(model, tbptt_steps=None, cpu_threads=None)
+    module.train()
+    batch = synthetic_batch(1, FLOP_COUNT_STEPS, "cpu")
+    batch["depth"] = batch["depth"].to(torch.float32) / 255.0
+    (chunk,) = list(module.tbptt_chunks(batch))
+    # oneDNN's fused LSTM is invisible to the counter; the plain implementation is counted product by product
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # "TF32 on top of oneDNN is for Intel GPUs", from toggling the flags
+        with torch.backends.mkldnn.flags(enabled=False), FlopCounterMode(display=False) as counter:
+            loss, _ = module.chunk_loss(chunk)
+            loss.backward()
+    return counter.get_total_flops() / FLOP_COUNT_STEPS
+
+
+def peak_tflops(device_name: str, precision: str) -> tuple[float, str] | None:
+    """(dense peak TFLOP/s, what it is) of a known GPU for ``precision`` (bf16 or fp32); None if unknown."""
+    for key, sheet in DATASHEET_TFLOPS.items():
+        if key in device_name:
+            if precision == "bf16":
+                return sheet["bf16_sparse"] / 2, f"{key} dense BF16 tensor cores"
+            return sheet["tf32_sparse"] / 2, f"{key} dense TF32 tensor cores"
+    return None
+
+
 def spread(values: list[float]) -> str:
     return f"{min(values):,.0f}-{max(values):,.0f}" if len(values) > 1 else "-"
+
+
+def arm_models(arm: str) -> list[str]:
+    from vitfly.workflows.reproduce_config import load_reproduce_config
+
+    cwd = os.getcwd()
+    os.chdir(ROOT)
+    try:
+        return list(load_reproduce_config(ROOT / "configs" / "reproduce.yaml", ARMS[arm]).train.models)
+    finally:
+        os.chdir(cwd)
+
+
+def rate_cells(fps: float, flops: float, peak: tuple[float, str] | None) -> str:
+    """``| GFLOP/frame | TFLOP/s | share of peak |`` for ``fps`` real frames/s of ``flops`` FLOPs each."""
+    tflops = fps * flops / 1e12
+    share = f"{100 * tflops / peak[0]:.2f} %" if peak else "n/a"
+    return f" {flops / 1e9:.4g} | {tflops:.4g} | {share} |"
 
 
 def main() -> None:
     if len(sys.argv) > 2 and sys.argv[1] == "--worker":
         worker_main(sys.argv[2:])
         return
+    sys.path.insert(0, str(ROOT))  # the driver reads this revision's presets and counts FLOPs with its networks
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--models", nargs="+", default=list(ALL_MODELS))
-    parser.add_argument("--modes", nargs="+", choices=MODES, default=["fp32", "bf16", "compiled"])
-    parser.add_argument("--batch", type=int, default=4, help="trajectories per batch (step mode)")
-    parser.add_argument("--steps", type=int, default=64, help="time steps per TBPTT chunk (step mode)")
+    parser.add_argument("--models", nargs="+", default=None, help="default: every model (with --arm: the arm's)")
+    parser.add_argument("--modes", nargs="+", default=None,
+                        help=f"step mode: {', '.join(MODES)} (default: fp32 bf16 compiled); with --arm: "
+                             f"{', '.join(ARM_MODES)} (default: recipe)")
+    parser.add_argument("--arm", choices=sorted(ARMS), help="train each model as this arm of the paper-budget "
+                        "study does (configs/reproduce.yaml presets paper / paper_vitfly)")
+    parser.add_argument("--batch", type=int, default=None,
+                        help="trajectories per batch (step mode: 4; --arm: the arm's, 1 or 64)")
+    parser.add_argument("--steps", type=int, default=None, help="step mode: time steps per TBPTT chunk (64); "
+                        f"--arm: real time steps per trajectory ({MEAN_FLIGHT_STEPS}, chunked as the arm does)")
     parser.add_argument("--iters", type=int, default=3, help="timed optimiser steps per sample (median)")
     parser.add_argument("--warmup", type=int, default=1, help="untimed steps first (compilation happens here)")
     parser.add_argument("--device", default=None, help="cpu or cuda (default: cuda when present)")
@@ -178,22 +354,35 @@ def main() -> None:
     parser.add_argument("--fit-skip", type=int, default=1, help="first batches left out of the --fit rate")
     parser.add_argument("--baseline-rev", help="git revision to measure side by side (e.g. 08f93e2)")
     parser.add_argument("--repeats", type=int, default=1, help="samples per model/mode (alternating revisions)")
+    parser.add_argument("--peak-tflops", type=float, default=None,
+                        help="the device's peak TFLOP/s for the share column (default: NVIDIA's datasheet for a "
+                             "known GPU, n/a otherwise)")
     parser.add_argument("--json", help="also write every sample to this JSON file")
     args = parser.parse_args()
     if args.fit and not args.data:
         parser.error("--fit needs --data (a vitfly HDF5 dataset)")
+    if args.arm and (args.fit or args.baseline_rev):
+        parser.error("--arm times optimiser steps of this revision; it takes neither --fit nor --baseline-rev")
+    choices = ARM_MODES if args.arm else MODES
+    modes = args.modes or (["recipe"] if args.arm else ["fp32", "bf16", "compiled"])
+    bad = [m for m in modes if m not in choices]
+    if bad and not args.fit:
+        parser.error(f"--modes: {bad[0]!r} is not one of {', '.join(choices)}")
+    models = args.models or (arm_models(args.arm) if args.arm else list(ALL_MODELS))
     import torch
 
     device = args.device or ("cuda" if torch.cuda.is_available() else "cpu")
+    device_name = torch.cuda.get_device_name(torch.device(device)) if device.startswith("cuda") else "cpu"
     data = str(Path(args.data).resolve()) if args.data else None
+    settings = {(m, mode): arm_settings(args.arm, m, mode) for m in models for mode in modes} if args.arm else {}
     with tempfile.TemporaryDirectory(prefix="vitfly-baseline-") as tmp:
         sides = {"new": ROOT}
         if args.baseline_rev:
             sides = {"baseline": export_revision(args.baseline_rev, Path(tmp)), "new": ROOT}
-        modes = ["fit"] if args.fit else args.modes
+        modes = ["fit"] if args.fit else modes
         samples: list[dict] = []
         for r in range(args.repeats):
-            for model in args.models:
+            for model in models:
                 for mode in modes:
                     order = list(sides) if r % 2 == 0 else list(reversed(sides))
                     for side in order:
@@ -202,31 +391,69 @@ def main() -> None:
                         if args.fit:
                             spec = {"kind": "fit", "model": model, "root": str(sides[side]), "data": data,
                                     "batches": args.fit_batches, "skip": args.fit_skip}  # fmt: skip
+                        elif args.arm:
+                            arm = settings[(model, mode)]
+                            spec = {"kind": "arm", "model": model, "policy_kwargs": arm["policy_kwargs"],
+                                    "batch": args.batch or arm["batch"], "steps": args.steps or MEAN_FLIGHT_STEPS,
+                                    "bucket": arm["bucket"], "precision": arm["precision"], "iters": args.iters,
+                                    "warmup": args.warmup, "device": device, "threads": args.threads}  # fmt: skip
                         else:
-                            spec = {"kind": "step", "model": model, "mode": mode, "batch": args.batch,
-                                    "steps": args.steps, "iters": args.iters, "warmup": args.warmup,
+                            spec = {"kind": "step", "model": model, "mode": mode, "batch": args.batch or 4,
+                                    "steps": args.steps or 64, "iters": args.iters, "warmup": args.warmup,
                                     "device": device, "threads": args.threads}  # fmt: skip
                         result = run_sample(sides[side], spec)
                         samples.append({"repeat": r, "model": model, "mode": mode, "side": side, **result})
                         print(f"  [{r}] {model} {mode} {side}: {result['fps']:,.1f} frames/s "
                               f"(warm-up {result['warmup_s']:.1f} s)", file=sys.stderr, flush=True)  # fmt: skip
+    flops = {} if args.fit else {m: flops_per_frame(m) for m in models}
+    precisions = {(m, mode): (settings[(m, mode)]["precision"] if args.arm else
+                              ("bf16" if mode.endswith("bf16") else "fp32")) for m in models for mode in modes}
+    peaks = {p: ((args.peak_tflops, "--peak-tflops") if args.peak_tflops else peak_tflops(device_name, p))
+             for p in ("fp32", "bf16")}
+    for sample in samples:
+        if sample["model"] in flops:
+            sample["flops_per_frame"] = flops[sample["model"]]
+            sample["precision"] = precisions[(sample["model"], sample["mode"])]
     if args.json:
-        Path(args.json).write_text(json.dumps(samples, indent=1))
-    what = "vitfly fit, shipped configs" if args.fit else f"{args.batch} x {args.steps} frames per optimiser step"
+        Path(args.json).write_text(json.dumps({"device": device_name, "samples": samples, "peaks": peaks,
+                                               "settings": {f"{m} {mode}": v for (m, mode), v in settings.items()}},
+                                              indent=1))
     threads = args.threads or torch.get_num_threads()
-    print(f"\n{device}, {threads} threads, {what}; medians of {args.repeats} samples (spread)")
+    if args.fit:
+        what = "vitfly fit, shipped configs"
+    elif args.arm:
+        what = (f"the {args.arm} arm (preset {ARMS[args.arm]}), {args.steps or MEAN_FLIGHT_STEPS} real steps per "
+                "trajectory; frames/s count real frames")
+    else:
+        what = f"{args.batch or 4} x {args.steps or 64} frames per optimiser step"
+    print(f"\n{device_name}, {threads} threads, {what}; medians of {args.repeats} samples (spread)")
     header = "| model | mode | frames/s | spread | warm-up s |"
+    if args.arm:
+        header = ("| model | arm | mode | precision | batch x steps (padded) | compiled graphs | frames/s | spread | "
+                  "warm-up s |")
+    if not args.fit:
+        header += " GFLOP/frame | TFLOP/s | share of peak |"
     if "baseline" in sides:
         header += f" baseline {args.baseline_rev} frames/s | spread | new / baseline | paired ratios |"
     print(header)
     print("|" + "---|" * (header.count("|") - 1))
-    for model in args.models:
+    for model in models:
         base = [s["fps"] for s in samples if s["model"] == model and s["side"] == "baseline"]
         for mode in modes:
             new = [s["fps"] for s in samples if (s["model"], s["mode"], s["side"]) == (model, mode, "new")]
             warm = [s["warmup_s"] for s in samples if (s["model"], s["mode"], s["side"]) == (model, mode, "new")]
             med = statistics.median
-            row = f"| {model} | {mode} | {med(new):,.0f} | {spread(new)} | {med(warm):.1f} |"
+            if args.arm:
+                arm = settings[(model, mode)]
+                first = next(s for s in samples if (s["model"], s["mode"]) == (model, mode))
+                padded, graphs = first["padded"], first["graphs"]
+                compiled = f"{graphs} ({first['cudagraph_skips']} CUDA-graph skips)" if graphs else "none (eager)"
+                row = (f"| {model} | {args.arm} | {mode} | {arm['precision']} | {padded[0]} x {padded[1]} | "
+                       f"{compiled} | {med(new):,.0f} | {spread(new)} | {med(warm):.1f} |")
+            else:
+                row = f"| {model} | {mode} | {med(new):,.0f} | {spread(new)} | {med(warm):.1f} |"
+            if not args.fit:
+                row += rate_cells(med(new), flops[model], peaks[precisions[(model, mode)]])
             if base:
                 ratio = statistics.median(new) / statistics.median(base)
                 # each repeat's new sample against the baseline sample taken next to it
@@ -239,6 +466,10 @@ def main() -> None:
                 pairs = ", ".join(f"{p:.2f}x" for p in paired)
                 row += f" {statistics.median(base):,.0f} | {spread(base)} | {ratio:.2f}x | {pairs} |"
             print(row)
+    if not args.fit:
+        used = "; ".join(f"{p}: {peak[0]:,.1f} TFLOP/s ({peak[1]})" for p, peak in peaks.items() if peak)
+        print(f"\nFLOPs per frame: forward and backward of one optimiser step, counted on the CPU "
+              f"(torch.utils.flop_counter). Peaks: {used or 'n/a (no datasheet entry for this device; --peak-tflops)'}")
 
 
 if __name__ == "__main__":

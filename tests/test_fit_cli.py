@@ -124,9 +124,47 @@ def test_print_config_shows_the_recipe(capsys):
     assert "avoid_weight: 10.0" in out and "tbptt_steps: 32" in out and "mirror_prob: 0.5" in out
 
 
+PAPER_MODELS = ("convnet", "lstmnet", "unet_lstm", "vit", "vit_lstm")
+
+
 def test_all_model_configs_parse():
     for name in ("convnet", "lstmnet", "unet_lstm", "vit", "vit_lstm", "resnet18"):
         assert main(["fit", "--config", str(REPO / "configs/fit" / f"{name}.yaml"), "--print_config"]) == 0
+    for name in PAPER_MODELS:  # the paper-recipe arm
+        assert main(["fit", "--config", str(REPO / "configs/fit/paper" / f"{name}.yaml"), "--print_config"]) == 0
+
+
+@pytest.mark.parametrize("name", PAPER_MODELS)
+def test_paper_recipes_are_the_original_training_config(name, capsys):
+    assert main(["fit", "--config", str(REPO / "configs/fit/paper" / f"{name}.yaml"), "--print_config"]) == 0
+    out = capsys.readouterr().out
+    for line in ("lr: 0.0001", "warmup_epochs: 5", "warmup_start_factor: 0.1", "lr_decay: 1.0", "avoid_weight: 0.0",
+                 "tbptt_steps: null", "batch_size: 1", "val_fraction: 0.2", "mirror_prob: 0.0", "max_length: null",
+                 "max_epochs: 100", f"class_path: vitfly.zoo.policy.{name}"):
+        assert line in out, line
+    precision = "bf16-mixed" if name.startswith("vit") else "32-true"
+    assert f"precision: {precision}" in out
+
+
+def test_paper_recipe_fits_with_static_shapes_and_buckets(data_path, tmp_path):
+    args = fit_args(data_path, tmp_path / "paper", "--data.batch_size", "1", "--model.init_args.static_shapes", "true",
+                    "--model.init_args.compile", "reduce-overhead", "--data.time_bucket_steps", "8", epochs=1)
+    args[2] = str(REPO / "configs/fit/paper/lstmnet.yaml")
+    assert main(args) == 0
+    run = run_dir_of(tmp_path / "paper")
+    assert (run / "checkpoints" / "last.ckpt").exists() and (run / "split.json").exists()
+    hparams = torch.load(run / "checkpoints" / "last.ckpt", weights_only=True)["hyper_parameters"]
+    assert (hparams["static_shapes"], hparams["compile"], hparams["tbptt_steps"]) == (True, "reduce-overhead", None)
+
+
+@pytest.mark.parametrize("flag,value,message", [
+    ("--data.time_bucket_steps", "0", "data.time_bucket_steps: expected a positive number of time steps"),
+    ("--model.init_args.compile", "graphs", "model.compile: expected false, true (default mode) or reduce-overhead"),
+])
+def test_bad_static_shape_options_fail_with_one_line(data_path, tmp_path, capsys, flag, value, message):
+    assert main(fit_args(data_path, tmp_path / "run", flag, value, epochs=1)) != 0
+    err = capsys.readouterr().err.strip().splitlines()
+    assert message in err[-1]
 
 
 def set_schema_version(path, version):

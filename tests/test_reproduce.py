@@ -26,7 +26,7 @@ CONFIG = REPO / "configs" / "reproduce.yaml"
 # -- configuration -----------------------------------------------------------------------------------------
 
 
-@pytest.mark.parametrize("preset", ["tiny", "laptop", "shipped", "paper"])
+@pytest.mark.parametrize("preset", ["tiny", "laptop", "shipped", "paper", "paper_vitfly"])
 def test_shipped_presets_load(preset):
     cfg = load_reproduce_config(CONFIG, preset)
     assert cfg.preset == preset
@@ -51,6 +51,56 @@ def test_laptop_budget_merges_recipe_overrides_and_per_model(monkeypatch):
     for m in cfg.train.models:
         h, mi, s = map(int, train_stage(cfg, m, True).trainer_kwargs["max_time"].split(":")[1:])
         assert h * 60 + mi + s / 60 < 120
+
+
+def test_paper_arm_trains_the_original_recipe_on_588_flights():
+    cfg = load_reproduce_config(CONFIG, "paper")
+    assert cfg.train.recipes == "configs/fit/paper" and cfg.collect["trajectories"] == 588
+    assert cfg.train.models == cfg.train.nostate_models == ["convnet", "lstmnet", "unet_lstm", "vit", "vit_lstm"]
+    for m in cfg.train.models:
+        t = train_stage(cfg, m, False)
+        assert (t.batch_size, t.max_epochs, t.val_fraction) == (1, 100, 0.2)
+        p = t.policy_kwargs
+        assert (p["lr"], p["warmup_epochs"], p["warmup_start_factor"], p["lr_decay"]) == (1e-4, 5, 0.1, 1.0)
+        assert (p["avoid_weight"], p["tbptt_steps"], p["gradient_clip_val"]) == (0.0, None, None)
+        assert (p["static_shapes"], p["compile"]) == (True, "reduce-overhead")  # CUDA graphs; eager on a CPU
+        assert (t.data_kwargs["mirror_prob"], t.data_kwargs["max_length"]) == (0.0, None)
+        assert t.data_kwargs["time_bucket_steps"] == 64
+        assert t.trainer_kwargs["precision"] == ("bf16-mixed" if m.startswith("vit") else "32-true")
+
+
+def test_paper_vitfly_arm_shares_the_dataset_and_scales_lr_by_the_square_root_of_the_batch():
+    from vitfly.sim.collect import load_collect_config
+
+    paper, arm = load_reproduce_config(CONFIG, "paper"), load_reproduce_config(CONFIG, "paper_vitfly")
+    # same file, same collect settings: one collection (and one dataset hash) for both arms
+    assert arm.data == paper.data and arm.collect_config == paper.collect_config
+    key = load_collect_config(paper.collect_config, paper.collect).content_key()
+    assert load_collect_config(arm.collect_config, arm.collect).content_key() == key
+    assert arm.out != paper.out
+    assert arm.train.models == ["convnet", "lstmnet", "unet_lstm", "vit", "vit_lstm", "resnet18"]
+    assert arm.train.nostate_models == [] and arm.train.recipes == "configs/fit"
+    plain = load_reproduce_config(CONFIG, None)  # today's recipes, no preset
+    for m in arm.train.models:
+        recipe, t = train_stage(plain, m, True), train_stage(arm, m, True)
+        assert (t.batch_size, t.max_epochs) == (64, 100)
+        # lr = recipe lr * sqrt(64 / recipe batch); everything else of the recipe kept (chunks, loss, mirroring)
+        expected = recipe.policy_kwargs["lr"] * math.sqrt(64 / recipe.batch_size)
+        assert t.policy_kwargs["lr"] == pytest.approx(expected, rel=1e-3)
+        for k in ("tbptt_steps", "warmup_epochs", "avoid_weight", "gradient_clip_val"):
+            assert t.policy_kwargs.get(k) == recipe.policy_kwargs.get(k), k
+        assert t.data_kwargs.get("mirror_prob") == recipe.data_kwargs.get("mirror_prob")
+        assert t.trainer_kwargs["precision"] == ("bf16-mixed" if m.startswith("vit") else "32-true")
+
+
+def test_existing_presets_train_as_before():
+    """tiny and laptop runs keep their done.json settings: no new key enters their recipes."""
+    for preset in ("tiny", "laptop"):
+        cfg = load_reproduce_config(CONFIG, preset)
+        for m in cfg.train.models:
+            t = train_stage(cfg, m, True)
+            assert "static_shapes" not in t.policy_kwargs and "time_bucket_steps" not in t.data_kwargs
+            assert t.policy_kwargs["compile"] is False
 
 
 def write(tmp_path: Path, text: str) -> Path:

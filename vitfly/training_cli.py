@@ -35,9 +35,10 @@ from vitfly.training import checkpoint_defaults, default_wandb_offline, finish_w
 from vitfly.training_checkpoints import LastCheckpoint
 from vitfly.zoo.checkpoint import network_hparams
 from vitfly.zoo.legacy import read_torch_file
-from vitfly.zoo.policy import PolicyModule, policy_class, register_policy_classes
+from vitfly.zoo.policy import PolicyModule, check_policy_arguments, policy_class, register_policy_classes
 
 SUBCOMMANDS = ("fit", "validate", "test", "predict")
+POLICY_CHECKED = ("avoid_weight", "tbptt_steps", "compile", "static_shapes", "cpu_threads")
 RUN_ROOT = "runs"  # where runs go when trainer.default_root_dir is not set
 # save_dir "" means "the run directory" (trainer.default_root_dir), filled in before instantiation so
 # that a --trainer.default_root_dir override moves the logs too (YAML interpolation would not)
@@ -110,6 +111,9 @@ class VitflyCLI(LightningCLI):
 
     def before_instantiate_classes(self) -> None:
         config = self.config[self.subcommand] if self.subcommand else self.config
+        # bad PolicyModule arguments as one line (jsonargparse would wrap the error in a page of its own)
+        init_args = getattr(config.model, "init_args", None) or {}
+        check_policy_arguments(**{k: init_args[k] for k in POLICY_CHECKED if k in init_args})
         root = config.trainer.default_root_dir or RUN_ROOT
         loggers = config.trainer.logger
         for logger in loggers if isinstance(loggers, list) else [loggers]:

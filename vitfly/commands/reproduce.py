@@ -1,4 +1,4 @@
-"""``vitfly reproduce --config configs/reproduce.yaml [--preset tiny|laptop|paper]``: the paper's results section."""
+"""``vitfly reproduce --config configs/reproduce.yaml [--preset tiny|laptop|paper|paper_vitfly]``: the study."""
 
 from __future__ import annotations
 
@@ -10,7 +10,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
     parser.add_argument("--config", default="configs/reproduce.yaml", help="reproduce YAML")
     parser.add_argument("--preset", help="a section under 'presets' in the YAML: tiny (CI, minutes), laptop (one "
-                        "working day on 2 CPU cores), paper (the paper's protocol, for a GPU)")
+                        "working day on 2 CPU cores), paper (the paper's protocol and training recipe, for a GPU), "
+                        "paper_vitfly (the same budget with vitfly's recipes in large batches, for a GPU)")
     parser.add_argument("--out", help="run directory (train/, eval/, figures/, results.md)")
     parser.add_argument("--data", help="HDF5 training dataset (collected or completed if needed)")
     parser.add_argument("--models", nargs="+",

@@ -25,7 +25,13 @@ from torch.utils.data import DataLoader, Sampler
 
 from vitfly.atomic import write_text
 from vitfly.datamodules.augment import check_mirror_prob, random_mirror
-from vitfly.datamodules.dataset import TrajectoryDataset, collate_trajectories, depth_to_unit_float
+from vitfly.datamodules.dataset import (
+    TrajectoryDataset,
+    check_time_bucket,
+    collate_trajectories,
+    depth_to_unit_float,
+    pad_to_bucket,
+)
 from vitfly.datamodules.resident import (
     ResidentTrajectories,
     WindowIndexDataset,
@@ -171,6 +177,12 @@ class TrajectoryDataModule(L.LightningDataModule):
             (``vitfly.datamodules.resident``). ``auto``: on a CUDA device when the dataset takes at
             most half its free memory; ``true``: on any device (on the CPU: no HDF5 reads, no loader
             workers after the first load); ``false``: stream from the file.
+        time_bucket_steps: pad each training and validation batch's time axis with masked steps up to a
+            multiple of this many steps, and a smaller last batch up to ``batch_size`` rows (None: batches
+            are as long as their longest trajectory). With the policy's ``static_shapes`` an epoch then
+            has at most (longest trajectory / ``time_bucket_steps``, rounded up) batch shapes, each compiled
+            or recorded as a CUDA graph once; padding is masked, so the loss and gradients do not change.
+            Choose a multiple of ``tbptt_steps`` when chunks are used (every chunk then has one shape).
     """
 
     def __init__(
@@ -190,12 +202,14 @@ class TrajectoryDataModule(L.LightningDataModule):
         predict_path: str | None = None,
         mirror_prob: float = 0.0,
         resident: bool | str = "auto",
+        time_bucket_steps: int | None = None,
     ):
         super().__init__()
         if resident not in (True, False, "auto"):
             raise VitflyError(f"resident: expected true, false or auto, got {resident!r}")
         if batch_size < 1:
             raise VitflyError(f"batch_size: expected a positive number of trajectories, got {batch_size}")
+        self.time_bucket_steps = check_time_bucket(time_bucket_steps)
         self.save_hyperparameters()
         self.data_path = data_path
         self.batch_size = batch_size
@@ -367,6 +381,9 @@ class TrajectoryDataModule(L.LightningDataModule):
         trainer = self.trainer
         if self.mirror_prob > 0.0 and trainer is not None and trainer.training:
             batch = random_mirror(batch, self.mirror_prob, self.split_seed, trainer.current_epoch)
+        fitting = trainer is not None and (trainer.training or trainer.validating or trainer.sanity_checking)
+        if self.time_bucket_steps and fitting:  # test/predict rows stay one per trajectory
+            batch = pad_to_bucket(batch, self.time_bucket_steps, self.batch_size)
         return depth_to_unit_float(batch)
 
     # -- resident dataset (train/validation loaders only; test/predict may read other files) ----------

@@ -162,6 +162,40 @@ def depth_to_unit_float(batch: dict[str, torch.Tensor]) -> dict[str, torch.Tenso
     return batch
 
 
+def check_time_bucket(steps: int | None, source: str = "data.time_bucket_steps") -> int | None:
+    """``steps`` if it is a positive whole number of time steps or None; else one error line naming ``source``."""
+    if steps is None or (isinstance(steps, int) and not isinstance(steps, bool) and steps >= 1):
+        return steps
+    raise VitflyError(f"{source}: expected a positive number of time steps (or null: no padding), got {steps!r}")
+
+
+def pad_to_bucket(batch: dict[str, torch.Tensor], bucket_steps: int, batch_size: int | None = None) -> dict:
+    """The batch padded at the end of its time axis to the next multiple of ``bucket_steps``, and along its
+    batch axis to ``batch_size`` rows (a smaller last batch), so that an epoch has at most as many batch
+    shapes as there are buckets (the longest trajectory / ``bucket_steps``, rounded up).
+
+    Padding is zeros with ``mask`` false, as ``collate_trajectories``'s; the added rows have ``traj_index``
+    -1 (no trajectory) and ``start`` 0. A new dict; a batch already of that shape is returned as is.
+    """
+    b, t = batch["mask"].shape
+    t_to = math.ceil(t / bucket_steps) * bucket_steps
+    b_to = max(b, batch_size or b)
+    if (b_to, t_to) == (b, t):
+        return batch
+    out = {}
+    for key, value in batch.items():
+        if value.dim() >= 2 and tuple(value.shape[:2]) == (b, t):  # per step: depth, telemetry, mask
+            padded = value.new_zeros((b_to, t_to, *value.shape[2:]))
+            padded[:b, :t] = value
+        elif value.dim() == 1 and value.shape[0] == b:  # per row: traj_index, start
+            padded = value.new_full((b_to,), -1 if key == "traj_index" else 0)
+            padded[:b] = value
+        else:
+            padded = value
+        out[key] = padded
+    return out
+
+
 def _batch_buffer(shape: tuple[int, ...], dtype: torch.dtype) -> torch.Tensor:
     """An uninitialised tensor; in a DataLoader worker, in shared memory, as torch's default_collate does, so
     the batch is not copied once more on its way to the main process."""

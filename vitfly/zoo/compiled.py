@@ -8,6 +8,13 @@ last TBPTT chunk and a varying number of simulated drones do not each trigger a 
 
 Where no compiler is available (no C++ compiler for the CPU backend, no Triton for CUDA) or the first
 compilation fails, one warning is logged and the encoder runs eagerly.
+
+``mode="reduce-overhead"`` records CUDA graphs of the compiled encoder (forward and backward): one graph
+per distinct frame count, replayed with a single launch, which is what a launch-bound step (one trajectory
+per optimiser step) needs. It is meant for static shapes (the policy's ``static_shapes`` with the
+datamodule's ``time_bucket_steps``: a few frame counts, each recorded once). CUDA graphs exist only on
+CUDA: on another device that mode runs the encoder eagerly (one warning), so a CUDA recipe still trains on
+a CPU without minutes of compilation.
 """
 
 from __future__ import annotations
@@ -58,17 +65,28 @@ def compiler_missing(device_type: str = "cpu") -> str | None:
     return None
 
 
-class _CompiledOrEager:
-    """Calls the compiled function; on a compilation failure warns once and calls the eager one from then on."""
+CUDA_ONLY_MODES = ("reduce-overhead",)  # torch.compile modes that exist for their CUDA graphs
 
-    def __init__(self, eager: Callable, compiled: Callable, name: str) -> None:
+
+class _CompiledOrEager:
+    """Calls the compiled function; on a compilation failure warns once and calls the eager one from then on.
+
+    ``cuda_only``: off CUDA, call the eager function (one warning per device type).
+    """
+
+    def __init__(self, eager: Callable, compiled: Callable, name: str, cuda_only: bool = False) -> None:
         self.eager = eager
         self.compiled = compiled
         self.name = name
         self.failed = False
+        self.cuda_only = cuda_only
 
     def __call__(self, frames: torch.Tensor) -> torch.Tensor:
         if self.failed:
+            return self.eager(frames)
+        if self.cuda_only and frames.device.type != "cuda":
+            _warn_once(f"torch.compile mode reduce-overhead (CUDA graphs) needs a CUDA device; {self.name} runs "
+                       f"eagerly on {frames.device.type}")
             return self.eager(frames)
         reason = compiler_missing(frames.device.type)
         if reason is not None:
@@ -90,7 +108,8 @@ class _CompiledOrEager:
 def compile_encoder(net: nn.Module, **compile_kwargs) -> nn.Module:
     """Compile ``net.encode`` in place (see the module docstring); returns ``net``. Idempotent.
 
-    ``compile_kwargs`` go to ``torch.compile`` (e.g. ``mode="max-autotune"``).
+    ``compile_kwargs`` go to ``torch.compile`` (e.g. ``mode="max-autotune"``; ``mode="reduce-overhead"``: CUDA
+    graphs on CUDA, eager elsewhere).
     """
     encode = getattr(net, "encode", None)
     if encode is None:
@@ -98,7 +117,8 @@ def compile_encoder(net: nn.Module, **compile_kwargs) -> nn.Module:
     if isinstance(encode, _CompiledOrEager):
         return net
     name = f"{type(net).__name__}.encode"
-    net.encode = _CompiledOrEager(encode, torch.compile(encode, **compile_kwargs), name)
+    cuda_only = compile_kwargs.get("mode") in CUDA_ONLY_MODES
+    net.encode = _CompiledOrEager(encode, torch.compile(encode, **compile_kwargs), name, cuda_only)
     return net
 
 

@@ -4,19 +4,23 @@ The network stays a plain ``nn.Module`` (``self.net``, built by ``create_model``
 the loss (paper eq. 1: MSE between the prediction and ``velocity_cmd / desired_speed`` averaged over
 valid steps), Adam with the paper's linear warm-up (set per step), truncated BPTT by manual optimisation, and the
 validation metrics (MSE, command cosine, and per-axis R^2 of the lateral and vertical commands, which
-tell a learned command from a constant one). ``create_policy(name, **kwargs)`` builds one; in LightningCLI
-YAML a registered name works as the model's class (``model: vit_lstm``), because every registered name has a
-``PolicyModule`` subclass of that name in this module, created on first use.
+tell a learned command from a constant one). With ``static_shapes`` a step keeps the padded batch's shape
+from end to end (for CUDA graphs, ``compile="reduce-overhead"``) and computes the same loss and gradients.
+``create_policy(name, **kwargs)`` builds one; in LightningCLI YAML a registered name works as the model's
+class (``model: vit_lstm``), because every registered name has a ``PolicyModule`` subclass of that name in
+this module, created on first use.
 """
 
 from __future__ import annotations
 
+import math
 from collections.abc import Iterator, Mapping
 from typing import Any
 
 import lightning as L
 import torch
 import torch.nn.functional as F
+from lightning.pytorch.utilities import rank_zero_warn
 from torch import nn
 from torchmetrics import MeanSquaredError, Metric, R2Score
 
@@ -25,6 +29,7 @@ from vitfly.zoo.base import DepthPolicyNet
 from vitfly.zoo.checkpoint import SENSOR_KEY, check_sensor, read_sensor, sensor_conflicts
 from vitfly.zoo.compiled import compile_encoder
 from vitfly.zoo.layers import state_vector
+from vitfly.zoo.masked_norm import FrameWeights, mask_batch_norm
 from vitfly.zoo.registry import create_model, list_models
 from vitfly.zoo.thread_tuner import ThreadTuner
 
@@ -34,6 +39,8 @@ CHUNK_KEYS = ("depth", "desired_speed", "quat", "velocity_cmd", "mask")
 R2_AXES = {"lateral": 1, "vertical": 2}  # world y (left), world z (up)
 MIN_SPEED_MPS = 1e-3  # guards the label division; real trajectories fly at >= 1 m/s
 FUSED_ADAM_DEVICES = ("cpu", "cuda")
+# model.compile: off, torch.compile's default mode, or CUDA graphs (static shapes only)
+COMPILE_MODES = {False: None, True: "default", "default": "default", "reduce-overhead": "reduce-overhead"}
 
 
 def normalised_target(velocity_cmd: torch.Tensor, desired_speed: torch.Tensor) -> torch.Tensor:
@@ -65,6 +72,19 @@ def weighted_masked_mse(
     weights = avoidance_weights(tgt, avoid_weight)
     per_step = (pred.float() - tgt.float()).pow(2).mean(dim=-1)
     return (weights * per_step).sum() / weights.sum()
+
+
+def dense_masked_mse(
+    prediction: torch.Tensor, target: torch.Tensor, mask: torch.Tensor, avoid_weight: float = 0.0
+) -> torch.Tensor:
+    """``weighted_masked_mse`` over the whole padded (B, T) tensor, padding weighted 0: the same value, but no
+    shape depends on the mask and nothing waits for the device (boolean indexing syncs with it on CUDA)."""
+    per_step = (prediction.float() - target.float()).pow(2).mean(dim=-1)
+    weights = mask.to(per_step.dtype)
+    if avoid_weight:
+        weights = weights * avoidance_weights(target.float(), avoid_weight)
+    # where, not a product: whatever the padding holds (even inf) it adds exactly 0
+    return torch.where(mask, weights * per_step, 0.0).sum() / weights.sum()
 
 
 def detach_hidden(hidden: Any) -> Any:
@@ -99,6 +119,33 @@ class CommandCosine(Metric):
 
     def compute(self) -> torch.Tensor:
         return (self.cos_sum / self.count.clamp_min(1)).to(torch.float32)
+
+
+def check_policy_arguments(
+    avoid_weight: float = 0.0,
+    tbptt_steps: int | None = None,
+    compile: bool | str = False,
+    static_shapes: bool = False,
+    cpu_threads: int | str | None = "auto",
+) -> str | None:
+    """One error line naming the field for a bad PolicyModule argument (``vitfly fit`` checks its config with
+    this before building anything); returns the torch.compile mode (None: no compilation)."""
+    threads_ok = cpu_threads in (None, "auto") or (
+        isinstance(cpu_threads, int) and not isinstance(cpu_threads, bool) and cpu_threads >= 1
+    )
+    if not threads_ok:
+        raise VitflyError(f"model.cpu_threads: expected auto, a thread count >= 1 or null, got {cpu_threads!r}")
+    if avoid_weight < 0:
+        raise VitflyError(f"model.avoid_weight: expected a weight >= 0, got {avoid_weight}")
+    if tbptt_steps is not None and tbptt_steps < 1:
+        raise VitflyError(f"model.tbptt_steps: expected a positive number of steps or null, got {tbptt_steps}")
+    compile_mode = COMPILE_MODES.get(compile) if isinstance(compile, (bool, str)) else None
+    if compile_mode is None and compile is not False:
+        raise VitflyError(f"model.compile: expected false, true (default mode) or reduce-overhead, got {compile!r}")
+    if compile_mode == "reduce-overhead" and not static_shapes:
+        raise VitflyError("model.compile: reduce-overhead (CUDA graphs replay fixed shapes) needs "
+                          "model.static_shapes: true, with data.time_bucket_steps set")
+    return compile_mode
 
 
 def lr_factor(epoch_progress: float, warmup_epochs: float, start: float, decay: float, max_epochs: float) -> float:
@@ -136,8 +183,15 @@ class PolicyModule(L.LightningModule):
             the recurrent state carried across chunks, detached (None: the whole batch at once).
         gradient_clip_val: clip the gradient norm to this value before each step (None: no clipping).
         compile: ``torch.compile`` the network's image encoder (``vitfly.zoo.compile_encoder``; one
-            warning and eager execution where the platform has no compiler). Weights and checkpoints
-            are the same either way.
+            warning and eager execution where the platform has no compiler): ``true`` (or ``default``) in
+            torch.compile's default mode; ``reduce-overhead`` records CUDA graphs of it on CUDA (eager on other
+            devices), which needs ``static_shapes``. Weights and checkpoints are the same either way.
+        static_shapes: keep each batch's padded shape through the training step: TBPTT chunks are not trimmed
+            of trailing padding, every frame goes through the image encoder (batch norm takes its statistics
+            from the real frames only, ``vitfly.zoo.masked_norm``) and the loss is a masked sum. Loss and
+            gradients are those of the default path (to float rounding; LSTM dropout masks are drawn for the
+            padded shape). With the datamodule's ``time_bucket_steps`` a step then has one of a few shapes,
+            which is what CUDA graphs need.
         cpu_threads: intra-op threads for training on the CPU: ``auto`` measures steps with all threads
             and with one and keeps the faster, re-measuring every 100 steps (``vitfly.zoo.thread_tuner``:
             on a machine shared with other work one thread can be several times faster); a number fixes
@@ -159,28 +213,27 @@ class PolicyModule(L.LightningModule):
         avoid_weight: float = 0.0,
         tbptt_steps: int | None = 32,
         gradient_clip_val: float | None = None,
-        compile: bool = False,
+        compile: bool | str = False,
         cpu_threads: int | str | None = "auto",
+        static_shapes: bool = False,
     ) -> None:
         super().__init__()
         model = model or type(self).default_model  # resolved before save_hyperparameters records it
         model_kwargs = dict(model_kwargs or {})
-        threads_ok = cpu_threads in (None, "auto") or (
-            isinstance(cpu_threads, int) and not isinstance(cpu_threads, bool) and cpu_threads >= 1
-        )
-        if not threads_ok:
-            raise VitflyError(f"model.cpu_threads: expected auto, a thread count >= 1 or null, got {cpu_threads!r}")
-        if avoid_weight < 0:
-            raise VitflyError(f"model.avoid_weight: expected a weight >= 0, got {avoid_weight}")
-        if tbptt_steps is not None and tbptt_steps < 1:
-            raise VitflyError(f"model.tbptt_steps: expected a positive number of steps or null, got {tbptt_steps}")
+        compile_mode = check_policy_arguments(avoid_weight, tbptt_steps, compile, static_shapes, cpu_threads)
         self.save_hyperparameters()
         # LightningCLI records the arguments as given (model=None); checkpoints must name the network
         self.hparams["model"], self.hparams["model_kwargs"] = model, model_kwargs
         self.automatic_optimization = False
         self.net: nn.Module = create_model(model, use_state=use_state, **model_kwargs)
-        if compile:
+        self.static_shapes = static_shapes
+        # frame weights read by the network's batch norms (None: it has none, or static_shapes is off)
+        self._frame_weights: FrameWeights | None = mask_batch_norm(self.net) if static_shapes else None
+        self.compile_mode = compile_mode
+        if compile_mode == "default":
             compile_encoder(self.net)
+        elif compile_mode is not None:
+            compile_encoder(self.net, mode=compile_mode)
         self.tbptt_steps = tbptt_steps
         self.gradient_clip_val = gradient_clip_val
         self.cpu_threads = cpu_threads
@@ -219,6 +272,23 @@ class PolicyModule(L.LightningModule):
         features[mask] = valid
         return net.head(features, state_vector(desired_speed, quat, net.use_state), hidden)
 
+    def _forward_all_frames(self, depth, desired_speed, quat, hidden, mask):
+        """Forward over every frame of the padded batch (``static_shapes``): one shape per batch shape.
+
+        Batch norms weigh the frames by ``mask`` (statistics from real frames only); padding sits at the end
+        of each row and the LSTMs are causal, so the real steps' outputs are those of the unpadded batch.
+        """
+        weights = self._frame_weights
+        if weights is not None and self.net.training:
+            weights.weights = mask.reshape(-1).to(torch.float32)  # frame order of the network's (B * T) reshape
+            if self.compile_mode is not None:
+                torch._dynamo.maybe_mark_dynamic(weights.weights, 0)  # as the frames: one graph for all counts
+        try:
+            return self.net(depth, desired_speed, quat, hidden)
+        finally:
+            if weights is not None:
+                weights.weights = None
+
     # -- training: truncated BPTT with manual optimisation -----------------------------------------
 
     def tbptt_chunks(self, batch: Mapping[str, torch.Tensor]) -> Iterator[dict[str, Any]]:
@@ -227,7 +297,9 @@ class PolicyModule(L.LightningModule):
 
         Chunk bounds and valid-frame counts come from one host copy of the (B, T) mask, so the loop
         over chunks waits for the device once per batch, not several times per chunk. Each chunk also
-        carries ``n_valid`` (its number of valid steps, a Python int) and ``all_valid``.
+        carries ``n_valid`` (its number of valid steps, a Python int) and ``all_valid``. With
+        ``static_shapes`` chunks keep their full length (the last one reaching into the padding is not
+        trimmed), so every chunk of a batch padded to a multiple of ``tbptt_steps`` has the same shape.
         """
         mask = batch["mask"]
         k = self.tbptt_steps or mask.shape[1]
@@ -236,6 +308,8 @@ class PolicyModule(L.LightningModule):
         if not bool(valid_steps.any()):
             return
         end = int(valid_steps.nonzero().max()) + 1  # trajectories are padded at the end: nothing valid follows
+        if self.static_shapes:
+            end = min(mask.shape[1], math.ceil(end / k) * k)
         for lo in range(0, end, k):
             steps = min(k, end - lo)
             piece = host_mask[:, lo : lo + steps]
@@ -247,6 +321,13 @@ class PolicyModule(L.LightningModule):
     def chunk_loss(self, chunk: Mapping[str, torch.Tensor], hidden: Any = None) -> tuple[torch.Tensor, Any]:
         """Paper eq. 1 on one chunk, starting from recurrent state ``hidden``: (loss, state after the chunk)."""
         mask, speed = chunk["mask"], chunk["desired_speed"]
+        if self.static_shapes:
+            if self.compile_mode == "reduce-overhead" and mask.is_cuda:
+                # a new training step: the CUDA graphs may reuse the previous step's output memory
+                torch.compiler.cudagraph_mark_step_begin()
+            prediction, hidden = self._forward_all_frames(chunk["depth"], speed, chunk["quat"], hidden, mask)
+            target = normalised_target(chunk["velocity_cmd"], speed)
+            return dense_masked_mse(prediction, target, mask, self.hparams.avoid_weight), hidden
         all_valid = chunk.get("all_valid")
         prediction, hidden = self._forward_valid(chunk["depth"], speed, chunk["quat"], hidden, mask, all_valid)
         target = normalised_target(chunk["velocity_cmd"], speed)
@@ -281,6 +362,10 @@ class PolicyModule(L.LightningModule):
         return sum(p.sum() for p in self.parameters() if p.requires_grad) * 0.0
 
     def on_fit_start(self) -> None:
+        datamodule = getattr(self.trainer, "datamodule", None)
+        if self.static_shapes and datamodule is not None and getattr(datamodule, "time_bucket_steps", None) is None:
+            rank_zero_warn("model.static_shapes without data.time_bucket_steps: every trajectory length is a shape "
+                           "of its own (set data.time_bucket_steps to bound them)")
         if self.device.type != "cpu" or self.cpu_threads is None:
             return
         if self.cpu_threads == "auto":

@@ -1,0 +1,59 @@
+"""benchmarks/train_speed.py --arm: the settings it takes from the presets, its FLOP count and its peak table.
+
+(The timing itself is a benchmark, never a test; `benchmarks/train_speed.py --arm paper --iters 3` runs on a CPU.)
+"""
+
+from __future__ import annotations
+
+import importlib.util
+from pathlib import Path
+
+import pytest
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+@pytest.fixture(scope="module")
+def bench():
+    spec = importlib.util.spec_from_file_location("train_speed", REPO / "benchmarks" / "train_speed.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def test_arms_take_batch_chunks_precision_and_static_shapes_from_their_presets(bench):
+    paper = bench.arm_settings("paper", "vit_lstm", "recipe")
+    assert paper == {"batch": 1, "bucket": 64, "precision": "bf16", "policy_kwargs": {
+        "tbptt_steps": None, "avoid_weight": 0.0, "gradient_clip_val": None, "static_shapes": True,
+        "compile": "reduce-overhead"}}
+    assert bench.arm_settings("paper", "convnet", "recipe")["precision"] == "fp32"
+    unpadded = bench.arm_settings("paper", "vit_lstm", "unpadded")
+    assert unpadded["bucket"] is None and unpadded["policy_kwargs"]["static_shapes"] is False
+    assert unpadded["policy_kwargs"]["compile"] is False
+    assert bench.arm_settings("paper", "vit_lstm", "eager")["policy_kwargs"]["static_shapes"] is True
+    assert bench.arm_settings("paper", "vit_lstm", "fp32")["precision"] == "fp32"
+    vitfly = bench.arm_settings("vitfly", "vit_lstm", "recipe")
+    assert (vitfly["batch"], vitfly["bucket"], vitfly["precision"]) == (64, None, "bf16")
+    assert vitfly["policy_kwargs"] == {"tbptt_steps": 32, "avoid_weight": 10.0, "gradient_clip_val": 1.0,
+                                       "compile": True}
+    assert bench.arm_models("vitfly")[-1] == "resnet18" and "resnet18" not in bench.arm_models("paper")
+
+
+def test_peaks_are_the_dense_datasheet_figures(bench):
+    assert bench.peak_tflops("NVIDIA H100 80GB HBM3", "bf16")[0] == pytest.approx(989.5)
+    assert bench.peak_tflops("NVIDIA H100 80GB HBM3", "fp32")[0] == pytest.approx(494.5)
+    assert bench.peak_tflops("NVIDIA H100 PCIe", "bf16")[0] == pytest.approx(756.5)
+    assert bench.peak_tflops("NVIDIA H100 PCIe", "fp32")[0] == pytest.approx(378.0)
+    assert bench.peak_tflops("NVIDIA H200", "bf16")[0] == pytest.approx(989.5)
+    assert bench.peak_tflops("cpu", "bf16") is None
+    assert bench.rate_cells(1e2, 2e9, (1000.0, "x")) == " 2 | 0.2 | 0.02 % |"
+    assert bench.rate_cells(1e5, 2e9, None).endswith("| n/a |")
+
+
+@pytest.mark.parametrize("model,rel", [("convnet", 0.0), ("lstmnet", 0.01)])
+def test_flops_per_frame_hold_for_any_trajectory_length(bench, monkeypatch, model, rel):
+    monkeypatch.setattr(bench, "FLOP_COUNT_STEPS", 32)
+    short = bench.flops_per_frame(model)
+    monkeypatch.setattr(bench, "FLOP_COUNT_STEPS", 96)  # a count on 32 frames holds for longer trajectories
+    long = bench.flops_per_frame(model)
+    assert short > 0 and long == pytest.approx(short, rel=rel, abs=0)
