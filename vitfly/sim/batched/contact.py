@@ -59,6 +59,8 @@ def nearby(position: torch.Tensor, batch: SceneBatch, horizon_m: torch.Tensor, b
     return signed_distances(position, batch) < (body_radius_m + horizon_m)[:, None]
 
 
-def in_contact(position: torch.Tensor, batch: SceneBatch, candidates: torch.Tensor, body_radius_m: float) -> torch.Tensor:
+def in_contact(
+    position: torch.Tensor, batch: SceneBatch, candidates: torch.Tensor, body_radius_m: float
+) -> torch.Tensor:
     """(E,) bool: the drone at ``position`` (E, 3) touches one of its ``candidates`` (E, K) obstacles."""
     return ((signed_distances(position, batch) < body_radius_m) & candidates).any(1)
