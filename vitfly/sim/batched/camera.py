@@ -47,33 +47,65 @@ def pixel_windows(u_lo, u_hi, v_lo, v_hi, tan_h: float, tan_v: float, height: in
     return r0.long(), r1.long(), c0.long(), c1.long()
 
 
-def window_pairs(r0, r1, c0, c1) -> tuple[torch.Tensor, torch.Tensor]:
-    """Every (shape, pixel-in-window) pair: ``(shape, offset)`` (P,) each, shape by shape.
+def sphere_windows(cam, radius, mask, max_range_m: float, frustum, tan_h: float, tan_v: float, height: int,
+                   width: int):
+    """Which spheres to cast and their pixel windows: ``(keep, r0, r1, c0, c1)``, each (E, K).
 
-    ``offset`` runs over shape k's window row-major: row ``r0 + offset // (c1 - c0)``, column
-    ``c0 + offset % (c1 - c0)`` (see :func:`pair_pixels`).
+    cam (E, K, 3) centres in the camera frame, radius (E, K) m, mask (E, K) the spheres to consider.
+    Kept: planar depth possibly within the range (at least cx - r) and not wholly outside a frustum side
+    plane. Windows: exact image bounds from the tangent planes through the camera for spheres wholly in
+    front; a sphere reaching behind the image plane may cover the whole image (the numpy camera's bounds).
+    """
+    cx, cy, cz = cam.unbind(-1)
+    keep = mask & (cx - radius < max_range_m) & ((cam @ frustum.T) > -radius[..., None]).all(-1)
+    r2 = radius * radius
+    front = cx > radius
+    k = torch.where(front, cx * cx - r2, torch.ones_like(cx))
+    hu = radius * torch.sqrt((cx * cx + cy * cy - r2).clamp(min=0.0))
+    hv = radius * torch.sqrt((cx * cx + cz * cz - r2).clamp(min=0.0))
+    big = torch.full_like(cx, _BIG)
+    windows = pixel_windows(torch.where(front, (cx * cy - hu) / k, -big), torch.where(front, (cx * cy + hu) / k, big),
+                            torch.where(front, (cx * cz - hv) / k, -big), torch.where(front, (cx * cz + hv) / k, big),
+                            tan_h, tan_v, height, width)
+    return (keep, *windows)
+
+
+def window_pairs(r0, r1, c0, c1) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Every (shape, pixel-in-window) pair, shape by shape: ``(shape (P,), start (K,), cols (K,))``.
+
+    Pair p belongs to shape ``shape[p]`` and is pixel ``p - start[shape]`` of its window, counted
+    row-major over ``cols`` columns (see :func:`pair_pixels`).
     """
     cols = (c1 - c0).clamp(min=0)
     count = (r1 - r0).clamp(min=0) * cols
     total = int(count.sum())
     shape = torch.repeat_interleave(torch.arange(len(count), device=count.device), count, output_size=total)
-    start = torch.cumsum(count, 0) - count
-    return shape, torch.arange(total, device=count.device) - start[shape]
+    return shape, torch.cumsum(count, 0) - count, cols.clamp(min=1)
 
 
-def pair_pixels(shape, offset, r0, c0, c1, width: int) -> torch.Tensor:
-    """Flat pixel index (row * width + column) of each (shape, offset) pair of :func:`window_pairs`."""
-    cols = (c1 - c0).clamp(min=1)[shape]
-    return (r0[shape] + offset // cols) * width + c0[shape] + offset % cols
+def pair_pixels(shape, start, r0, c0, cols, width: int) -> torch.Tensor:
+    """Flat pixel index (row * width + column) of each pair of :func:`window_pairs`."""
+    offset = torch.arange(shape.shape[0], device=shape.device) - start[shape]
+    n = cols[shape]
+    return (r0[shape] + offset // n) * width + c0[shape] + offset % n
 
 
-def sphere_pair_depth(shape, pix, cam, r2, u, v, a) -> torch.Tensor:
-    """Planar depth (m) of pixel ``pix`` on sphere ``shape``, +inf where its ray misses (or hits behind).
+def _world_ray(rot, pix, u, v, i: int) -> torch.Tensor:
+    """Component i of pixel ``pix``'s world-frame ray R (1, u, v), rot (P, 3, 3) (as the numpy camera sums it)."""
+    return rot[:, i, 0] + rot[:, i, 1] * u[pix] + rot[:, i, 2] * v[pix]
 
-    cam (K, 3) sphere centres in the camera frame (x forward, y left, z up), r2 (K,) squared radii;
-    u, v, a (H W,) the pixel rays (1, u, v) and their squared lengths. Outside a sphere the near
+
+def sphere_pair_depth(pairs, env, cam, r2, u, v, a, width: int):
+    """(flat index into the (E H W) buffer, planar depth in m) of every (sphere, pixel) pair; +inf where the
+    ray misses (or hits behind).
+
+    pairs: (shape, start, r0, c0, cols) of :func:`window_pairs` and the windows; env (K,) each sphere's
+    scene; cam (K, 3) sphere centres in the camera frame (x forward, y left, z up); r2 (K,) squared
+    radii; u, v, a (H W,) the pixel rays (1, u, v) and their squared lengths. Outside a sphere the near
     intersection, inside it the far side (the exit point), as the numpy camera.
     """
+    shape = pairs[0]
+    pix = pair_pixels(*pairs, width)
     cx, cy, cz = cam[shape].unbind(-1)
     uu, vv, aa = u[pix], v[pix], a[pix]
     b = cx + cy * uu + cz * vv  # ray . centre
@@ -83,16 +115,18 @@ def sphere_pair_depth(shape, pix, cam, r2, u, v, a) -> torch.Tensor:
     hit = disc >= 0
     root = torch.sqrt(_where_safe(disc > 0, disc)) * (disc > 0)
     t = (b - torch.where(c > 0, root, -root)) / aa
-    return torch.where(hit & (t > 0), t, torch.inf)
+    return env[shape] * u.shape[0] + pix, torch.where(hit & (t > 0), t, torch.inf)
 
 
-def cylinder_pair_depth(shape, pix, cyl, origin, dirs) -> torch.Tensor:
-    """Planar depth (m) of pixel ``pix`` on vertical cylinder ``shape`` (side wall and caps), +inf for none.
-
-    cyl (K, 5) [x, y, z_bottom, z_top, radius]; origin (K, 3) the camera centre of each cylinder's
-    scene; dirs (K, 3, H W) world-frame pixel rays of that scene. Solved in the world frame.
+def cylinder_pair_depth(pairs, env, cyl, origin, rot, u, v, width: int):
+    """(flat index, planar depth in m) of every (vertical cylinder, pixel) pair (side wall and caps), +inf
+    for none. cyl (K, 5) [x, y, z_bottom, z_top, radius]; origin (K, 3) the camera centre and rot (K, 3, 3)
+    the body-to-world rotation of each cylinder's scene. Solved in the world frame, as the numpy camera.
     """
-    dx, dy, dz = (dirs[shape, i, pix] for i in range(3))
+    shape = pairs[0]
+    pix = pair_pixels(*pairs, width)
+    r_pair = rot[shape]
+    dx, dy, dz = (_world_ray(r_pair, pix, u, v, i) for i in range(3))
     px, py, pz = origin[shape].unbind(-1)
     ox, oy = px - cyl[shape, 0], py - cyl[shape, 1]
     z0, z1, r = cyl[shape, 2], cyl[shape, 3], cyl[shape, 4]
@@ -110,16 +144,19 @@ def cylinder_pair_depth(shape, pix, cyl, origin, dirs) -> torch.Tensor:
         tc = (zc - pz) / _where_safe(up, dz)
         qx, qy = ox + tc * dx, oy + tc * dy
         best = torch.where(up & (tc > 0) & (qx * qx + qy * qy <= r2) & (tc < best), tc, best)
-    return best
+    return env[shape] * u.shape[0] + pix, best
 
 
-def box_pair_depth(shape, pix, boxes, origin, dirs) -> torch.Tensor:
-    """Planar depth (m) of pixel ``pix`` on axis-aligned box ``shape`` (slab method), +inf for none;
-    inside a box, its far side. boxes (K, 6) [min xyz, max xyz]; origin, dirs as :func:`cylinder_pair_depth`."""
+def box_pair_depth(pairs, env, boxes, origin, rot, u, v, width: int):
+    """(flat index, planar depth in m) of every (axis-aligned box, pixel) pair (slab method), +inf for none;
+    inside a box, its far side. boxes (K, 6) [min xyz, max xyz]; origin, rot as :func:`cylinder_pair_depth`."""
+    shape = pairs[0]
+    pix = pair_pixels(*pairs, width)
+    r_pair = rot[shape]
     lo, hi, o = boxes[shape, :3], boxes[shape, 3:], origin[shape]
     t_near = t_far = None
     for i in range(3):
-        d = dirs[shape, i, pix]
+        d = _world_ray(r_pair, pix, u, v, i)
         moving = d != 0
         d_safe = _where_safe(moving, d)
         t0, t1 = (lo[:, i] - o[:, i]) / d_safe, (hi[:, i] - o[:, i]) / d_safe
@@ -132,7 +169,14 @@ def box_pair_depth(shape, pix, boxes, origin, dirs) -> torch.Tensor:
         t_near = near if t_near is None else torch.maximum(t_near, near)
         t_far = far if t_far is None else torch.minimum(t_far, far)
     t = torch.where(t_near > 0, t_near, t_far)
-    return torch.where((t_near > t_far) | (t_far <= 0), torch.inf, t)
+    return env[shape] * u.shape[0] + pix, torch.where((t_near > t_far) | (t_far <= 0), torch.inf, t)
+
+
+def ground_depth(origin, rotation, u, v, envs) -> torch.Tensor:
+    """(E, H W) planar depth (m) of the plane z = 0 below each camera above it (+inf elsewhere)."""
+    dz = rotation[:, 2, 0:1] + rotation[:, 2, 1:2] * u + rotation[:, 2, 2:3] * v
+    down = (dz < 0) & (origin[:, 2:3] > 0) & envs[:, None]
+    return torch.where(down, -origin[:, 2:3] / _where_safe(down, dz), torch.inf)
 
 
 class BatchedCamera:
@@ -155,7 +199,6 @@ class BatchedCamera:
         self.mount = torch.as_tensor(np.asarray(cfg.mount_offset_m, dtype=np.float64), **like)
         self.frustum = torch.as_tensor(ref._frustum, **like)  # (4, 3) inward unit normals, body frame
         self.reach = ref._reach
-        self.rays = torch.stack([torch.ones_like(self.u), self.u, self.v])  # (3, H W) body frame
         corners = [[sx, sy, sz] for sx in (0, 1) for sy in (0, 1) for sz in (0, 1)]
         self._box_corners = torch.as_tensor(corners, **like)
         self._cyl_corners = torch.as_tensor(
@@ -164,7 +207,8 @@ class BatchedCamera:
         self._spheres_kernel = wrap(sphere_pair_depth)
         self._cylinders_kernel = wrap(cylinder_pair_depth)
         self._boxes_kernel = wrap(box_pair_depth)
-        self._pixels_kernel = wrap(pair_pixels)
+        self._ground_kernel = wrap(ground_depth)
+        self._sphere_windows = wrap(sphere_windows)
 
     # -- public ------------------------------------------------------------------------------------
 
@@ -184,19 +228,20 @@ class BatchedCamera:
         origin = self.camera_centre(position, rotation)
         if envs is None:
             envs = torch.ones(e, dtype=torch.bool, device=position.device)
-        dirs = rotation @ self.rays  # (E, 3, H W) world-frame pixel rays
         flats, depths = [], []
         for cast in (self._cast_spheres, self._cast_cylinders, self._cast_boxes):
-            out = cast(batch, origin, rotation, dirs, envs)
+            out = cast(batch, origin, rotation, envs)
             if out is not None:
                 flats.append(out[0])
                 depths.append(out[1])
-        buffer = torch.full((e * size,), torch.inf, dtype=position.dtype, device=position.device)
+        # the ground (or nothing) first; the shapes' hits replace it where nearer
+        if cfg.render_ground:
+            buffer = self._ground_kernel(origin, rotation, self.u, self.v, envs).reshape(-1)
+        else:
+            buffer = torch.full((e * size,), torch.inf, dtype=position.dtype, device=position.device)
         if flats:
             buffer = buffer.scatter_reduce(0, torch.cat(flats), torch.cat(depths), "amin", include_self=True)
         depth = buffer.view(e, size)
-        if cfg.render_ground:
-            depth = torch.minimum(depth, self._ground(origin, dirs[:, 2], envs))
         return depth.view(e, cfg.height, cfg.width)
 
     def metric_depth(self, batch, position, rotation, envs=None) -> torch.Tensor:
@@ -232,45 +277,27 @@ class BatchedCamera:
         cfg = self.config
         return pixel_windows(u_lo, u_hi, v_lo, v_hi, self.tan_h, self.tan_v, cfg.height, cfg.width)
 
-    def _pairs(self, env, windows):
-        """(shape, flat index into the batch buffer) of every pixel in each shape's window."""
-        cfg = self.config
+    def _pairs(self, windows):
+        """(shape, start, r0, c0, cols) of every pixel in each shape's window (see :func:`window_pairs`)."""
         r0, r1, c0, c1 = windows
-        shape, offset = window_pairs(r0, r1, c0, c1)
-        pix = self._pixels_kernel(shape, offset, r0, c0, c1, cfg.width)
-        return shape, pix, env[shape] * (cfg.height * cfg.width) + pix
+        shape, start, cols = window_pairs(r0, r1, c0, c1)
+        return shape, start, r0, c0, cols
 
-    def _cast_spheres(self, batch, origin, rotation, dirs, envs):
+    def _cast_spheres(self, batch, origin, rotation, envs):
         cfg = self.config
         sph = batch.spheres
         # world -> camera frame: R^T (centre - origin)
         cam = torch.einsum("ekj,eji->eki", sph[..., :3] - origin[:, None, :], rotation)
-        radius = sph[..., 3]
         with torch.no_grad():
-            # planar depth on a sphere is at least cx - r (beyond the range it reads 1 anyway); frustum cull
-            keep = (cam[..., 0] - radius < cfg.max_range_m) & ((cam @ self.frustum.T) > -radius[..., None]).all(-1)
-            keep &= batch.sphere_mask & envs[:, None]
+            keep, r0, r1, c0, c1 = self._sphere_windows(
+                cam.detach(), sph[..., 3].detach(), batch.sphere_mask & envs[:, None], cfg.max_range_m, self.frustum,
+                self.tan_h, self.tan_v, cfg.height, cfg.width)
             env, k = keep.nonzero(as_tuple=True)
-        if len(env) == 0:
-            return None
-        cam, r = cam[env, k], radius[env, k]
-        with torch.no_grad():
-            # exact image bounds from the tangent planes through the camera (spheres wholly in front);
-            # a sphere reaching behind the image plane may cover the whole image
-            cx, cy, cz = cam.detach().unbind(-1)
-            rd = r.detach()
-            r2 = rd * rd
-            front = cx > rd
-            kk = torch.where(front, cx * cx - r2, torch.ones_like(cx))
-            hu = rd * torch.sqrt((cx * cx + cy * cy - r2).clamp(min=0.0))
-            hv = rd * torch.sqrt((cx * cx + cz * cz - r2).clamp(min=0.0))
-            big = torch.full_like(cx, _BIG)
-            windows = self._windows(torch.where(front, (cx * cy - hu) / kk, -big),
-                                    torch.where(front, (cx * cy + hu) / kk, big),
-                                    torch.where(front, (cx * cz - hv) / kk, -big),
-                                    torch.where(front, (cx * cz + hv) / kk, big))
-            shape, pix, flat = self._pairs(env, windows)
-        return flat, self._spheres_kernel(shape, pix, cam, r * r, self.u, self.v, self.a)
+            if len(env) == 0:
+                return None
+            pairs = self._pairs((r0[env, k], r1[env, k], c0[env, k], c1[env, k]))
+        r = sph[env, k, 3]
+        return self._spheres_kernel(pairs, env, cam[env, k], r * r, self.u, self.v, self.a, cfg.width)
 
     def _corner_windows(self, corners_cam: torch.Tensor):
         """Pixel windows of the convex hulls of (K, 8, 3) camera-frame corners (whole image if one is behind)."""
@@ -281,7 +308,7 @@ class BatchedCamera:
         return self._windows(torch.where(front, u.amin(-1), -big), torch.where(front, u.amax(-1), big),
                              torch.where(front, v.amin(-1), -big), torch.where(front, v.amax(-1), big))
 
-    def _cast_cylinders(self, batch, origin, rotation, dirs, envs):
+    def _cast_cylinders(self, batch, origin, rotation, envs):
         if batch.cylinders.shape[1] == 0:
             return None
         cyl = batch.cylinders
@@ -297,10 +324,11 @@ class BatchedCamera:
             env, k = keep.nonzero(as_tuple=True)
             if len(env) == 0:
                 return None
-            shape, pix, flat = self._pairs(env, self._corner_windows(cam[env, k]))
-        return flat, self._cylinders_kernel(shape, pix, cyl[env, k], origin[env], dirs[env])
+            pairs = self._pairs(self._corner_windows(cam[env, k]))
+        return self._cylinders_kernel(pairs, env, cyl[env, k], origin[env], rotation[env], self.u, self.v,
+                                      self.config.width)
 
-    def _cast_boxes(self, batch, origin, rotation, dirs, envs):
+    def _cast_boxes(self, batch, origin, rotation, envs):
         if batch.boxes.shape[1] == 0:
             return None
         boxes = batch.boxes
@@ -316,11 +344,6 @@ class BatchedCamera:
             lo, hi = lo[env, k], hi[env, k]
             corners = lo[:, None, :] + self._box_corners * (hi - lo)[:, None, :] - o[env]
             cam = torch.einsum("knj,kji->kni", corners, rotation.detach()[env])
-            shape, pix, flat = self._pairs(env, self._corner_windows(cam))
-        return flat, self._boxes_kernel(shape, pix, boxes[env, k], origin[env], dirs[env])
-
-    def _ground(self, origin, dz, envs):
-        """(E, H W) depth of the plane z = 0 below a camera above it (+inf elsewhere)."""
-        down = (dz < 0) & (origin[:, 2:3] > 0) & envs[:, None]
-        return torch.where(down, -origin[:, 2:3] / _where_safe(down, dz), torch.inf)
-
+            pairs = self._pairs(self._corner_windows(cam))
+        return self._boxes_kernel(pairs, env, boxes[env, k], origin[env], rotation[env], self.u, self.v,
+                                  self.config.width)

@@ -19,6 +19,7 @@ from __future__ import annotations
 import math
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
 import torch
@@ -70,20 +71,43 @@ def _compiler(settings: BatchedSettings, dynamic: bool) -> Callable | None:
     return lambda fn: torch.compile(fn, dynamic=dynamic)
 
 
-def _substep(state: DroneTensors, command, candidates, running, touching_before, goal_x, lo, hi, batch,
-             airframe, gains, dt, body_radius_m):
-    """One physics step for all drones and the checks of the running ones.
+class Tracking(NamedTuple):
+    """Per-env bookkeeping of contact and end conditions during a rollout, (E,) each unless said.
 
-    Returns (state, touching, goal, out_of_bounds): contact after the step and the end events, (E,)
-    bool each, false for envs no longer running. ``touching_before`` is unused here (the caller counts
-    rising edges); it keeps the signature stable for the compiled version.
+    end_code: 0 running, else the index of its reason in ``END_CODES``; end_time (s); final_position
+    (E, 3) m; touching: in contact after the last physics step; contact_steps, n_collisions (rising
+    edges); tick_contact: touched during the current control tick.
     """
+
+    end_code: torch.Tensor
+    end_time: torch.Tensor
+    final_position: torch.Tensor
+    touching: torch.Tensor
+    contact_steps: torch.Tensor
+    n_collisions: torch.Tensor
+    tick_contact: torch.Tensor
+
+
+def _substep(state: DroneTensors, track: Tracking, command, candidates, time_s, goal_x, lo, hi, batch, airframe,
+             gains, dt, body_radius_m) -> tuple[DroneTensors, Tracking]:
+    """One physics step for all drones (the cascaded controller tracking ``command`` (E, 3) m/s), then the
+    contact, goal and bounding-box checks of the envs still running; ``time_s`` (0-d) is the time after it."""
+    running = track.end_code == 0
     state = physics_step(state, velocity_control(command, state, airframe, gains), airframe, dt)
     touching = in_contact(state.position, batch, candidates, body_radius_m) & running
     p = state.position
     goal = running & (p[:, 0] >= goal_x)
-    inside = ((p >= lo) & (p <= hi)).all(1)
-    return state, touching, goal, running & ~goal & ~inside
+    out = running & ~goal & ~((p >= lo) & (p <= hi)).all(1)
+    ended = goal | out
+    return state, Tracking(
+        end_code=torch.where(goal, 1, torch.where(out, 3, track.end_code)),
+        end_time=torch.where(ended, time_s, track.end_time),
+        final_position=torch.where(ended[:, None], p, track.final_position),
+        touching=torch.where(running, touching, track.touching),
+        contact_steps=track.contact_steps + touching,
+        n_collisions=track.n_collisions + (touching & ~track.touching),
+        tick_contact=track.tick_contact | touching,
+    )
 
 
 class _Log:
@@ -150,11 +174,11 @@ def run_batched(
     lo, hi = torch.as_tensor(task.bounds_min, **like), torch.as_tensor(task.bounds_max, **like)
     log = _Log(int(math.ceil(float(timeout.max()) * cfg.control_hz)) + 2, n, like, labels=False)
     state = hover_state(torch.as_tensor(task.start, **like).expand(n, 3), af)
-    end_code = torch.zeros(n, dtype=torch.long, device=like["device"])
-    end_time, final_position = torch.zeros(n, **like), torch.zeros(n, 3, **like)
-    touching = torch.zeros(n, dtype=torch.bool, device=like["device"])
-    n_collisions = torch.zeros(n, dtype=torch.long, device=like["device"])
-    contact_steps = torch.zeros(n, dtype=torch.long, device=like["device"])
+    long, flag = dict(dtype=torch.long, device=like["device"]), dict(dtype=torch.bool, device=like["device"])
+    track = Tracking(end_code=torch.zeros(n, **long), end_time=torch.zeros(n, **like),
+                     final_position=torch.zeros(n, 3, **like), touching=torch.zeros(n, **flag),
+                     contact_steps=torch.zeros(n, **long), n_collisions=torch.zeros(n, **long),
+                     tick_contact=torch.zeros(n, **flag))
     results: list[EpisodeResult | None] = [None] * n
     policy.reset(n)
     active = torch.ones(n, dtype=torch.bool, device=like["device"])
@@ -184,36 +208,26 @@ def run_batched(
         reach = 2.0 * torch.maximum(torch.maximum(now, speed), torch.full_like(now, 5.0)) / cfg.control_hz + 0.5
         candidates = nearby(state.position, batch, reach, task.body_radius_m) & active[:, None]
         command = torch.where(active[:, None], commands, torch.zeros_like(commands))  # finished envs hover
-        tick_contact = torch.zeros_like(active)
+        track = track._replace(tick_contact=torch.zeros_like(active))
         # 3. physics steps with the cascaded controller; contact, goal and bounds of the running envs
         for _ in range(substeps):
-            running = end_code == 0
-            state, now_touching, goal, out = substep(state, command, candidates, running, touching, task.goal_x_m,
-                                                     lo, hi, batch, af, gains, dt, task.body_radius_m)
             time_s += dt
-            contact_steps += now_touching
-            tick_contact |= now_touching
-            n_collisions += now_touching & ~touching
-            touching = torch.where(running, now_touching, touching)
-            ended = goal | out
-            end_code = torch.where(goal, 1, torch.where(out, 3, end_code))
-            end_time = torch.where(ended, time_s, end_time)
-            final_position = torch.where(ended[:, None], state.position, final_position)
+            state, track = substep(state, track, command, candidates, torch.tensor(time_s, **like), task.goal_x_m,
+                                   lo, hi, batch, af, gains, dt, task.body_radius_m)
         # 4. log the tick, the timeouts, close the episodes that ended
-        row["command"][:], row["contact"][:] = commands, tick_contact
-        timed_out = active & (end_code == 0) & (time_s >= timeout - 1e-9)
-        end_code = torch.where(timed_out, 2, end_code)
-        end_time = torch.where(timed_out, time_s, end_time)
-        final_position = torch.where(timed_out[:, None], state.position, final_position)
-        flags = torch.cat([bad[None], active & (end_code != 0)]).cpu()  # the tick's one synchronisation
+        row["command"][:], row["contact"][:] = commands, track.tick_contact
+        timed_out = active & (track.end_code == 0) & (time_s >= timeout - 1e-9)
+        track = track._replace(end_code=torch.where(timed_out, 2, track.end_code),
+                               end_time=torch.where(timed_out, time_s, track.end_time),
+                               final_position=torch.where(timed_out[:, None], state.position, track.final_position))
+        flags = torch.cat([bad[None], active & (track.end_code != 0)]).cpu()  # the tick's one synchronisation
         if flags[0]:
             raise ValueError(f"policy returned non-finite commands at tick {tick}")
         for i in np.flatnonzero(flags[1:].numpy()).tolist():
-            results[i] = _finish(i, tick + 1, scenes[i], float(speeds[i]), log, cfg, dt, end_code, end_time,
-                                 final_position, n_collisions, contact_steps)
+            results[i] = _finish(i, tick + 1, scenes[i], float(speeds[i]), log, dt, track)
             if on_episode_end is not None:
                 on_episode_end(i, results[i])
-        active = end_code == 0
+        active = track.end_code == 0
         tick += 1
         if all(r is not None for r in results):
             return results  # type: ignore[return-value]
@@ -252,8 +266,7 @@ def _draws(cfg: RolloutConfig, st: BatchedSettings, rngs, generator, active, lik
             None if dropout is None else torch.as_tensor(dropout, **like))
 
 
-def _finish(i, ticks, scene, speed, log: _Log, cfg, dt, end_code, end_time, final_position, n_collisions,
-            contact_steps) -> EpisodeResult:
+def _finish(i: int, ticks: int, scene: Scene, speed: float, log: _Log, dt: float, track: Tracking) -> EpisodeResult:
     """Episode i's result: its log rows 0 .. ticks - 1 and its summary, brought to the host."""
 
     def host(name):
@@ -269,13 +282,13 @@ def _finish(i, ticks, scene, speed, log: _Log, cfg, dt, end_code, end_time, fina
         depth=torch.stack([f[i] for f in log.frames[:ticks]]).cpu().numpy() if log.frames else None,
         label=host("label").astype(np.float64) if log.labels else None,
     )
-    reason = END_CODES[int(end_code[i])]
+    reason = END_CODES[int(track.end_code[i])]
     reached = reason == "goal"
-    collisions = int(n_collisions[i])
+    collisions = int(track.n_collisions[i])
     summary = EpisodeSummary(
         env=scene.env, preset=scene.preset, seed=int(scene.seed), desired_speed=speed, end_reason=str(reason),
         reached_goal=reached, success=reached and collisions == 0, n_collisions=collisions,
-        time_in_contact_s=int(contact_steps[i]) * dt, duration_s=float(end_time[i]),
-        final_position=tuple(float(v) for v in final_position[i].tolist()),
+        time_in_contact_s=int(track.contact_steps[i]) * dt, duration_s=float(track.end_time[i]),
+        final_position=tuple(float(v) for v in track.final_position[i].tolist()),
     )
     return EpisodeResult(scene=scene, log=episode, summary=summary)
