@@ -87,7 +87,9 @@ def pair_pixels(shape, start, r0, c0, cols, width: int) -> torch.Tensor:
     """Flat pixel index (row * width + column) of each pair of :func:`window_pairs`."""
     offset = torch.arange(shape.shape[0], device=shape.device) - start[shape]
     n = cols[shape]
-    return (r0[shape] + offset // n) * width + c0[shape] + offset % n
+    # offset // n in float64 (exact for these small integers, and much cheaper than integer division)
+    row = torch.floor((offset.double() + 0.5) / n.double()).long()
+    return (r0[shape] + row) * width + c0[shape] + offset - row * n
 
 
 def _world_ray(rot, pix, u, v, i: int) -> torch.Tensor:
