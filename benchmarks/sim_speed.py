@@ -19,6 +19,14 @@ Per back end (``--physics``, default: pybullet where installed, and native):
    The expert, camera and bookkeeping cost the same on every back end, so these gain less.
 3. Depth frames per second (the camera alone) and collection frames per second with ``--workers``
    1 and 2 (`vitfly collect`'s library call, HDF5 writes included).
+4. The batched torch engine (``vitfly.sim.batched``) beside the numpy engine in the same run: env-steps
+   per second (30 Hz ticks, every tick's 90 x 60 depth image rendered) of the expert flying
+   ``--batched-scenes`` spheres/medium scenes in lockstep (``--batched-seconds`` simulated seconds each),
+   the numpy engine (native back end) on the first ``--numpy-scenes`` of them; CPU time and wall clock.
+   ``--device cuda --batched-scenes 4096`` runs the batched engine on a GPU; ``--only-batched`` skips 1-3.
+
+    .venv/bin/python benchmarks/sim_speed.py --only-batched --dtype float64 float32 --compile
+    .venv/bin/python benchmarks/sim_speed.py --only-batched --device cuda --batched-scenes 4096 --numpy-scenes 64
 """
 
 from __future__ import annotations
@@ -154,6 +162,67 @@ def collect_fps(workers: int, trajectories: int, physics: str) -> tuple[float, i
     return summary.frames / wall, summary.frames, wall
 
 
+class _DepthExpert(ExpertPolicy):
+    """The expert, with every tick's depth image rendered (as a learned policy would need it)."""
+
+    needs_depth = True
+
+
+def batched_speed(args) -> dict:
+    """Env-steps per second of the expert with depth rendered: numpy engine vs the batched engine."""
+    import torch
+
+    from vitfly.sim.batched.policies import BatchedExpert
+    from vitfly.sim.batched.rollout import BatchedSettings, run_batched
+    from vitfly.sim.rollout import TaskConfig
+
+    class DepthBatchedExpert(BatchedExpert):
+        needs_depth = True
+
+    torch.set_num_threads(args.threads)
+    task = TaskConfig(timeout_s=args.batched_seconds, timeout_speed_factor=0.0)
+    cfg = RolloutConfig(physics="native", task=task)
+    scenes = [make_scene("spheres", "medium", 30_000 + i) for i in range(args.batched_scenes)]
+    speeds = [args.speed] * len(scenes)
+    out: dict = {"scenes": len(scenes), "simulated_s": args.batched_seconds, "threads": args.threads,
+                 "device": args.device}
+
+    def timed(run) -> tuple[float, float, int]:
+        start, start_cpu = time.perf_counter(), time.process_time()
+        results = run()
+        if args.device.startswith("cuda"):
+            torch.cuda.synchronize()
+        wall, cpu = time.perf_counter() - start, time.process_time() - start_cpu
+        return wall, cpu, sum(len(r.log) for r in results)
+
+    n_np = min(args.numpy_scenes, len(scenes))
+    wall, cpu, steps = timed(lambda: run_episodes(scenes[:n_np], speeds[:n_np], _DepthExpert(), cfg))
+    out["numpy"] = {"scenes": n_np, "env_steps": steps, "wall_s": wall, "cpu_s": cpu,
+                    "steps_per_s_wall": steps / wall, "steps_per_s_cpu": steps / cpu}
+    print(f"4. expert with depth, spheres/medium, {args.batched_seconds:g} s episodes, env-steps/s "
+          f"(CPU time / wall clock), torch threads {args.threads}")
+    print(f"   numpy engine, {n_np} scenes: {steps / cpu:8.0f} / {steps / wall:8.0f}", flush=True)
+    for dtype_name in args.dtype:
+        dtype = getattr(torch, dtype_name)
+        for compiled in sorted({False, args.compile}):
+            settings = BatchedSettings(device=args.device, dtype=dtype, compile=compiled)
+            warm = time.perf_counter()  # compiles on the first call (and first sizes)
+            run_batched(scenes, speeds, DepthBatchedExpert(), RolloutConfig(task=TaskConfig(
+                timeout_s=0.3, timeout_speed_factor=0.0)), settings=settings)
+            warm = time.perf_counter() - warm
+            wall, cpu, steps = timed(lambda s=settings: run_batched(scenes, speeds, DepthBatchedExpert(), cfg,
+                                                                     settings=s))
+            key = f"{dtype_name}{'_compiled' if compiled else ''}"
+            row = out[key] = {"env_steps": steps, "wall_s": wall, "cpu_s": cpu, "warmup_s": warm,
+                              "steps_per_s_wall": steps / wall, "steps_per_s_cpu": steps / cpu,
+                              "ratio_cpu": (steps / cpu) / out["numpy"]["steps_per_s_cpu"],
+                              "ratio_wall": (steps / wall) / out["numpy"]["steps_per_s_wall"]}
+            print(f"   batched {args.device} {key:18s} {len(scenes)} scenes: {row['steps_per_s_cpu']:8.0f} / "
+                  f"{row['steps_per_s_wall']:8.0f}  ({row['ratio_cpu']:.2f}x / {row['ratio_wall']:.2f}x numpy; "
+                  f"warm-up {warm:.1f} s)", flush=True)
+    return out
+
+
 def fmt_gaps(gaps: dict) -> str:
     return ", ".join(f"{k} {v:.1e}" for k, v in gaps.items())
 
@@ -171,8 +240,23 @@ def main() -> None:
     parser.add_argument("--collect-trajectories", type=int, default=8, help="trajectories per collect run")
     parser.add_argument("--skip-collect", action="store_true")
     parser.add_argument("--json", help="also write the numbers here")
+    parser.add_argument("--only-batched", action="store_true", help="only part 4, the batched engine")
+    parser.add_argument("--skip-batched", action="store_true", help="skip part 4")
+    parser.add_argument("--batched-scenes", type=int, default=64, help="lockstep scenes of the batched engine")
+    parser.add_argument("--numpy-scenes", type=int, default=64, help="of those, flown by the numpy engine too")
+    parser.add_argument("--batched-seconds", type=float, default=4.0, help="simulated seconds per episode")
+    parser.add_argument("--device", default="cpu", help="the batched engine's device: cpu, cuda, cuda:1, ...")
+    parser.add_argument("--dtype", nargs="+", choices=("float64", "float32"), default=["float64", "float32"])
+    parser.add_argument("--compile", action="store_true", help="also time the batched engine with torch.compile")
+    parser.add_argument("--threads", type=int, default=1, help="torch threads of the batched engine")
     args = parser.parse_args()
     ref = args.physics[0]
+    if args.only_batched:
+        out = {"machine": f"{platform.processor() or platform.machine()}, {os.cpu_count()} logical CPUs",
+               "batched": batched_speed(args)}
+        if args.json:
+            Path(args.json).write_text(json.dumps(out, indent=2, default=str))
+        return
 
     out: dict = {"machine": f"{platform.processor() or platform.machine()}, {os.cpu_count()} logical CPUs",
                  "python": platform.python_version(), "physics": args.physics, "tolerance": PARITY_TOLERANCE}
@@ -238,6 +322,8 @@ def main() -> None:
                 out.setdefault("collect_fps", {})[f"{physics}_workers{workers}"] = fps
                 print(f"   collect, {physics}, --workers {workers}: {fps:.0f} frames/s ({frames} frames in "
                       f"{wall:.1f} s, {args.collect_trajectories} trajectories, HDF5 writes included)", flush=True)
+    if not args.skip_batched:
+        out["batched"] = batched_speed(args)
     if args.json:
         Path(args.json).write_text(json.dumps(out, indent=2, default=str))
 

@@ -1,0 +1,126 @@
+"""Policies for the batched engine: the expert and straight flight as tensor code, and an adapter for
+any numpy policy of :mod:`vitfly.sim.rollout` (learned policies, the mixture).
+
+A batched policy has ``batched = True``, ``needs_depth``, ``reset(num_envs)`` and
+``__call__(obs: BatchedObservation)`` returning world-frame velocity commands (E, 3) m/s as a tensor on
+the engine's device, or ``(commands, labels)``. :func:`as_batched_policy` turns the built-in numpy
+policies into their batched twins and wraps every other policy in :class:`NumpyPolicy`.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from vitfly.sim.batched.expert import expert_commands
+from vitfly.sim.batched.scenes import SceneBatch
+from vitfly.sim.expert import ExpertConfig
+from vitfly.sim.policies import ExpertPolicy, StraightPolicy
+from vitfly.sim.rollout import LabelledCommands, Observation
+
+
+@dataclass
+class BatchedObservation:
+    """What a batched policy sees at one control tick (tensors on the engine's device, world frame, SI).
+
+    depth (E, H, W) in [0, 1] (zeros where not rendered); desired_speed (E,) m/s; quat (E, 4)
+    (w, x, y, z) body-to-world; position (E, 3) m; velocity (E, 3) m/s; active (E,) bool; time_s:
+    seconds since the episodes' start; tick: control tick index; batch: the scenes (privileged).
+    """
+
+    depth: torch.Tensor
+    desired_speed: torch.Tensor
+    quat: torch.Tensor
+    position: torch.Tensor
+    velocity: torch.Tensor
+    active: torch.Tensor
+    time_s: float
+    tick: int
+    batch: SceneBatch
+
+
+class BatchedExpert:
+    """The privileged expert (:func:`vitfly.sim.batched.expert.expert_commands`) for every env."""
+
+    batched = True
+    needs_depth = False
+
+    def __init__(self, config: ExpertConfig | None = None, blocked=None):
+        self.config = config or ExpertConfig()
+        self._kwargs = {} if blocked is None else {"blocked": blocked}
+
+    def reset(self, num_envs: int) -> None:
+        pass
+
+    def __call__(self, obs: BatchedObservation) -> torch.Tensor:
+        return expert_commands(obs.position, obs.desired_speed, obs.batch, self.config, **self._kwargs)
+
+
+class BatchedStraight:
+    """Straight ahead at the desired speed: (desired_speed, 0, 0) m/s, world frame."""
+
+    batched = True
+    needs_depth = False
+
+    def reset(self, num_envs: int) -> None:
+        pass
+
+    def __call__(self, obs: BatchedObservation) -> torch.Tensor:
+        out = torch.zeros_like(obs.position)
+        out[:, 0] = obs.desired_speed
+        return out
+
+
+class NumpyPolicy:
+    """Runs a numpy policy (:class:`vitfly.sim.rollout.Policy`) in the batched engine: the observation
+    goes to the host as an :class:`~vitfly.sim.rollout.Observation` (depth float32, as the numpy engine
+    gives it) and the commands (and labels) come back to the device."""
+
+    batched = True
+
+    def __init__(self, policy):
+        self.policy = policy
+        self.needs_depth = bool(getattr(policy, "needs_depth", True))
+        self._obstacles: list[np.ndarray] | None = None
+
+    def reset(self, num_envs: int) -> None:
+        self._obstacles = None
+        self.policy.reset(num_envs)
+
+    def __call__(self, obs: BatchedObservation):
+        scenes = list(obs.batch.scenes)
+        if self._obstacles is None:
+            self._obstacles = [s.expert_obstacles() for s in scenes]
+        n = len(scenes)
+        host = Observation(
+            depth=obs.depth.detach().to("cpu", torch.float32).numpy(),
+            desired_speed=obs.desired_speed.detach().cpu().double().numpy(),
+            quat=obs.quat.detach().cpu().double().numpy(),
+            position=obs.position.detach().cpu().double().numpy(),
+            velocity=obs.velocity.detach().cpu().double().numpy(),
+            obstacles=self._obstacles,
+            active=obs.active.cpu().numpy(),
+            time=np.full(n, obs.time_s),
+            tick=obs.tick,
+            scenes=scenes,
+        )
+        out = self.policy(host)
+        like = dict(dtype=obs.position.dtype, device=obs.position.device)
+        if isinstance(out, LabelledCommands):
+            return (torch.as_tensor(np.asarray(out.command, dtype=np.float64), **like),
+                    torch.as_tensor(np.asarray(out.label, dtype=np.float64), **like))
+        return torch.as_tensor(np.asarray(out, dtype=np.float64), **like)
+
+
+def as_batched_policy(policy):
+    """``policy`` for the batched engine: batched policies as they are, the numpy expert and straight
+    flight as their batched twins (same commands), any other policy through :class:`NumpyPolicy`."""
+    if getattr(policy, "batched", False):
+        return policy
+    if type(policy) is ExpertPolicy:
+        return BatchedExpert(policy.config)
+    if type(policy) is StraightPolicy:
+        return BatchedStraight()
+    return NumpyPolicy(policy)
