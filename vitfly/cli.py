@@ -12,6 +12,7 @@ import importlib
 import sys
 
 from vitfly.errors import VitflyError
+from vitfly.packaged import version_line
 from vitfly.quiet import quiet_third_party
 
 LIGHTNING_SUBCOMMANDS = ("fit", "validate", "test", "predict")
@@ -31,6 +32,7 @@ SUBCOMMANDS: dict[str, tuple[str, str]] = {
     "reproduce": ("reproduce", "the paper's results section: data, 11 trainings, every evaluation, results.md"),
     "dagger": ("dagger", "DAgger with the privileged expert beside behaviour cloning at equal labelled frames"),
     "publish-weights": ("publish_weights", "a trained checkpoint as weights/NAME.safetensors (fp16) + manifest"),
+    "configs": ("configs", "the configs shipped with vitfly: names for --config, what each is, where it lives"),
 }
 
 
@@ -41,6 +43,8 @@ def _build_parser() -> argparse.ArgumentParser:
         f"Training subcommands ({', '.join(LIGHTNING_SUBCOMMANDS)}) are LightningCLI: "
         "see `vitfly fit --help`.",
     )
+    parser.add_argument("--version", action="version", version=version_line(),
+                        help="vitfly's version and where it runs from, then exit")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     for name in LIGHTNING_SUBCOMMANDS:
         sub.add_parser(name, help=f"LightningCLI {name} (vitfly {name} --config X.yaml)", add_help=False)
