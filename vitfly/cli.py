@@ -36,6 +36,17 @@ SUBCOMMANDS: dict[str, tuple[str, str]] = {
 }
 
 
+class _PrintVersion(argparse.Action):
+    """``--version``: one line, never wrapped (argparse's own version action wraps long paths)."""
+
+    def __init__(self, option_strings, dest, **kwargs):
+        super().__init__(option_strings, dest, nargs=0, **kwargs)
+
+    def __call__(self, parser, namespace, values, option_string=None):
+        print(version_line())
+        parser.exit()
+
+
 def _build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="vitfly",
@@ -43,8 +54,7 @@ def _build_parser() -> argparse.ArgumentParser:
         f"Training subcommands ({', '.join(LIGHTNING_SUBCOMMANDS)}) are LightningCLI: "
         "see `vitfly fit --help`.",
     )
-    parser.add_argument("--version", action="version", version=version_line(),
-                        help="vitfly's version and where it runs from, then exit")
+    parser.add_argument("--version", action=_PrintVersion, help="vitfly's version and where it runs from, then exit")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     for name in LIGHTNING_SUBCOMMANDS:
         sub.add_parser(name, help=f"LightningCLI {name} (vitfly {name} --config X.yaml)", add_help=False)
