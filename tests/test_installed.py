@@ -22,37 +22,42 @@ from pathlib import Path
 
 import pytest
 
-pytestmark = pytest.mark.slow  # about 1.5 min: a wheel, a venv, one evaluation trial and the tiny main job
+pytestmark = pytest.mark.slow  # about 1.5 min: a wheel, two venvs, one evaluation trial and the tiny main job
 
 REPO = Path(__file__).resolve().parents[1]
 SOURCES = ("pyproject.toml", "README.md", "vitfly", "configs", "weights")
 
 
-def build_wheel(out: Path) -> Path:
-    """The wheel of this tree, built offline in a copy (the tree gets no build/ or egg-info)."""
-    pytest.importorskip("setuptools", minversion="77", reason="building the wheel offline needs setuptools >= 77 "
+def copy_tree(src: Path) -> Path:
+    """What the build reads, copied (the tree gets no build/ or egg-info)."""
+    pytest.importorskip("setuptools", minversion="77", reason="building vitfly offline needs setuptools >= 77 "
                         "(pip install -e '.[dev]')")
-    src = out / "src"
     src.mkdir()
     for name in SOURCES:
         if (REPO / name).is_dir():
             shutil.copytree(REPO / name, src / name, ignore=shutil.ignore_patterns("__pycache__"))
         else:
             shutil.copy2(REPO / name, src / name)
-    subprocess.run([sys.executable, "-m", "pip", "wheel", str(src), "--no-deps", "--no-build-isolation",
-                    "--no-index", "-q", "-w", str(out / "dist")], check=True)
+    return src
+
+
+def build_wheel(out: Path) -> Path:
+    """The wheel of this tree, built offline."""
+    subprocess.run([sys.executable, "-m", "pip", "wheel", str(copy_tree(out / "src")), "--no-deps",
+                    "--no-build-isolation", "--no-index", "-q", "-w", str(out / "dist")], check=True)
     return next((out / "dist").glob("vitfly-*.whl"))
 
 
-def make_venv(root: Path, wheel: Path) -> Path:
-    """A venv holding the installed wheel; the test environment's site-packages behind it."""
+def make_venv(root: Path, *install: str) -> Path:
+    """A venv with ``pip install --no-deps *install`` (the wheel, or ``-e DIR``); the test environment's
+    site-packages behind it."""
     subprocess.run([sys.executable, "-m", "venv", "--without-pip", str(root)], check=True)
     python = root / "bin" / "python"
     inner = Path(subprocess.run([python, "-c", "import sysconfig; print(sysconfig.get_path('purelib'))"],
                                 check=True, capture_output=True, text=True).stdout.strip())
     (inner / "zz_test_environment.pth").write_text("\n".join(site.getsitepackages()) + "\n")
     subprocess.run([sys.executable, "-m", "pip", "--python", str(python), "install", "--no-deps", "--no-index",
-                    "-q", str(wheel)], check=True)
+                    "--no-build-isolation", "-q", *install], check=True)
     return root
 
 
@@ -65,7 +70,11 @@ def venv(tmp_path_factory):
                if p.is_file() and p.suffix in (".yaml", ".json", ".safetensors")}
     missing = sorted(s for s in shipped if f"vitfly/{s}" not in names)
     assert not missing, f"{wheel.name} lacks {missing}"
-    return make_venv(tmp / "venv", wheel)
+    return make_venv(tmp / "venv", str(wheel))
+
+
+ENV = {**{k: v for k, v in os.environ.items() if k not in ("PYTHONPATH", "VITFLY_WEIGHTS_DIR")},
+       "MPLBACKEND": "Agg", "WANDB_MODE": "offline"}
 
 
 @pytest.fixture
@@ -73,11 +82,9 @@ def run(venv, tmp_path):
     """``vitfly ARGS`` from the venv, in an empty directory, without PYTHONPATH or a weights override."""
     cwd = tmp_path / "elsewhere"
     cwd.mkdir()
-    env = {k: v for k, v in os.environ.items() if k not in ("PYTHONPATH", "VITFLY_WEIGHTS_DIR")}
-    env.update(MPLBACKEND="Agg", WANDB_MODE="offline")
 
     def vitfly(*args: str, rc: int = 0) -> subprocess.CompletedProcess:
-        done = subprocess.run([str(venv / "bin" / "vitfly"), *args], cwd=cwd, env=env, capture_output=True,
+        done = subprocess.run([str(venv / "bin" / "vitfly"), *args], cwd=cwd, env=ENV, capture_output=True,
                               text=True, timeout=600)
         assert done.returncode == rc, f"vitfly {' '.join(args)}: exit {done.returncode}\n{done.stdout}\n{done.stderr}"
         return done
@@ -117,3 +124,17 @@ def test_the_main_job_by_config_name(venv, run):
     assert {p.name: p.stat().st_mtime_ns for p in weights.iterdir()} == before
     run("publish-weights", str(ckpt), "--name", "mine", "--weights-dir", "mine")
     assert json.loads((run.cwd / "mine" / "manifest.json").read_text())["models"]["mine"]["vitfly_version"]
+
+
+def test_an_editable_install_reads_the_tree_it_points_at(tmp_path):
+    src = copy_tree(tmp_path / "src")
+    venv = make_venv(tmp_path / "venv", "-e", str(src))
+    cwd = tmp_path / "elsewhere"
+    cwd.mkdir()
+    code = ("import vitfly; from vitfly.packaged import config_path; from vitfly.zoo.pretrained import publish_dir, "
+            "weights_dir; from vitfly.zoo import load_pretrained; load_pretrained('convnet'); "
+            "print(vitfly.__file__, config_path('quickstart'), weights_dir(), publish_dir())")
+    out = subprocess.run([str(venv / "bin" / "python"), "-c", code], cwd=cwd, env=ENV, capture_output=True,
+                         text=True, check=True).stdout.split()
+    assert out == [str(src / "vitfly" / "__init__.py"), str(src / "configs" / "quickstart.yaml"),
+                   str(src / "weights"), str(src / "weights")]
