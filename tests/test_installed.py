@@ -115,10 +115,19 @@ def test_the_main_job_by_config_name(venv, run):
     assert "[collect]" in out and "[train]" in out and "success over all trials" in out
     result = json.loads((run.cwd / "runs" / "quickstart-tiny" / "pipeline.json").read_text())
     assert set(result["success_paper"]) == {"convnet", "expert", "straight"}
+    # the version that wrote them: dataset, checkpoint
+    import h5py
+    import torch
+
+    from vitfly import __version__
+
+    with h5py.File(run.cwd / "data" / "quickstart_tiny.h5", "r") as f:
+        assert f.attrs["vitfly_version"] == __version__
+    ckpt = run.cwd / "runs" / "quickstart-tiny" / "train" / "checkpoints" / "best.ckpt"
+    assert torch.load(ckpt, map_location="cpu", weights_only=True)["vitfly"]["vitfly_version"] == __version__
     # publishing has no directory to write to: one line, the package's weights untouched
     weights = next((venv / "lib").glob("python*/site-packages")) / "vitfly" / "weights"
     before = {p.name: p.stat().st_mtime_ns for p in weights.iterdir()}
-    ckpt = run.cwd / "runs" / "quickstart-tiny" / "train" / "checkpoints" / "best.ckpt"
     err = run("publish-weights", str(ckpt), "--name", "mine", rc=2).stderr.strip().splitlines()
     assert len(err) == 1 and "vitfly is installed as a package" in err[0]
     assert {p.name: p.stat().st_mtime_ns for p in weights.iterdir()} == before

@@ -15,6 +15,8 @@ from vitfly import packaged
 from vitfly.cli import main
 from vitfly.errors import VitflyError
 from vitfly.training_cli import resolve_config_args
+from vitfly.workflows.reproduce_config import load_reproduce_config
+from vitfly.workflows.reproduce_report import _record_closed_loop
 from vitfly.zoo import create_model, save_checkpoint
 from vitfly.zoo.pretrained import WEIGHTS_ENV, publish_dir, save_pretrained, weights_dir
 
@@ -79,7 +81,7 @@ def test_every_workflow_loads_its_config_by_name_from_elsewhere(elsewhere):
     from vitfly.workflows.ablation import load_ablation_config
     from vitfly.workflows.dagger_config import base_collect, load_dagger_config
     from vitfly.workflows.pipeline import load_pipeline_config, stage_collect
-    from vitfly.workflows.reproduce_config import load_reproduce_config, train_stage
+    from vitfly.workflows.reproduce_config import train_stage
 
     pipeline = load_pipeline_config("quickstart")
     assert pipeline.collect_config == "configs/collect/spheres.yaml"  # resolved where it is read, by name here
@@ -143,6 +145,12 @@ def test_version_has_one_source(capsys):
     assert pyproject["tool"]["setuptools"]["dynamic"]["version"] == {"attr": "vitfly.__version__"}
 
 
+def test_checkpoints_record_the_version(tmp_path):
+    save_checkpoint(create_model("convnet"), "convnet", True, tmp_path / "c.ckpt", metadata={"source": "x"})
+    stamp = torch.load(tmp_path / "c.ckpt", weights_only=True)["vitfly"]
+    assert stamp == {"format": "vitfly.checkpoint", "version": 1, "vitfly_version": vitfly.__version__, "source": "x"}
+
+
 def test_the_wheel_lists_every_package_and_config_folder():
     tomllib = pytest.importorskip("tomllib")
     setup = tomllib.loads((REPO / "pyproject.toml").read_text())["tool"]["setuptools"]
@@ -171,11 +179,13 @@ def test_installed_refuses_to_publish_into_itself(installed, tmp_path, monkeypat
     assert main(["publish-weights", str(ckpt), "--name", "mine"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "vitfly is installed as a package" in err[0] and "--weights-dir" in err[0]
-    assert {p.name: p.stat().st_mtime_ns for p in (installed / "weights").iterdir()} == before
-    with pytest.raises(VitflyError, match="train.publish_weights: vitfly is installed"):
-        from vitfly.workflows.reproduce_config import load_reproduce_config
-
+    with pytest.raises(VitflyError, match="train.publish_weights: vitfly is installed"):  # before any training
         load_reproduce_config("reproduce", "tiny", {"train": {"publish_weights": True}})
+    rows = {"spheres": [{"policy": "convnet", "env": "spheres", "speed": 3.0, "success_paper_rate": 0.5,
+                         "trials": 2}]}
+    _record_closed_loop(load_reproduce_config("reproduce", "shipped"), rows)  # the shipped preset's report
+    assert "closed-loop numbers kept in results.json only" in capsys.readouterr().out
+    assert {p.name: p.stat().st_mtime_ns for p in (installed / "weights").iterdir()} == before
     # a directory given, or $VITFLY_WEIGHTS_DIR, is written
     mine = tmp_path / "mine"
     assert save_pretrained(ckpt, "mine", {}, mine) == mine / "mine.safetensors"
