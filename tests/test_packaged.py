@@ -130,8 +130,11 @@ def test_configs_lists_every_shipped_config(capsys):
     assert "vitfly fit" in row and "ViT+LSTM" in row
     assert main(["configs", "fit/vit_lstm"]) == 0
     assert capsys.readouterr().out.strip() == str(REPO / "configs" / "fit" / "vit_lstm.yaml")
-    assert main(["configs", "nope"]) == 2
-    assert len(capsys.readouterr().err.strip().splitlines()) == 1
+    assert main(["configs", "configs/fit/vit_lstm.yaml"]) == 0
+    assert capsys.readouterr().out.strip() == str(REPO / "configs" / "fit" / "vit_lstm.yaml")
+    for bad in ("nope", "../configs/quickstart", "/etc/quickstart"):
+        assert main(["configs", bad]) == 2
+        assert len(capsys.readouterr().err.strip().splitlines()) == 1
 
 
 def test_version_has_one_source(capsys):

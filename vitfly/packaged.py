@@ -65,10 +65,10 @@ def config_name(spec: str | os.PathLike) -> str | None:
     return text if NAME_PATTERN.fullmatch(text) and ".." not in text.split("/") else None
 
 
-def shipped_config(name: str) -> Path | None:
-    """The shipped config file of ``name`` (``fit/vit_lstm``), or None."""
-    root = shipped_dir("configs")
-    path = root / f"{name}{CONFIG_SUFFIX}" if root is not None else None
+def shipped_config(spec: str | os.PathLike) -> Path | None:
+    """The shipped config file that ``spec`` names (``fit/vit_lstm``, ``configs/fit/vit_lstm.yaml``), or None."""
+    name, root = config_name(spec), shipped_dir("configs")
+    path = root / f"{name}{CONFIG_SUFFIX}" if name is not None and root is not None else None
     return path if path is not None and path.is_file() else None
 
 
@@ -77,8 +77,7 @@ def config_path(spec: str | os.PathLike) -> Path:
     path = Path(spec)
     if path.is_file():
         return path
-    name = config_name(spec)
-    found = shipped_config(name) if name is not None else None
+    found = shipped_config(spec)
     if found is None:
         raise VitflyError(f"{os.fspath(spec)}: config file not found, nor a config shipped with vitfly by that name "
                           "(`vitfly configs` lists them)")
