@@ -1,12 +1,13 @@
 """vitfly as another project depends on it: the wheel of this tree installed (not editable) into a fresh venv,
 and run from an empty directory, nothing from the clone in reach.
 
-The venv sees the test environment's packages (torch, Lightning, ...) through a ``.pth`` line: a venv made with
-``--system-site-packages`` from inside a venv sees the base interpreter's packages, not the venv's. A ``.pth``
-line adds a directory without running the ``.pth`` files in it, so the outer environment's editable vitfly stays
-out of reach; the tests check that the vitfly that runs is the venv's. Offline: the wheel is built without build
-isolation and installed without dependencies. ``$VITFLY_WHEEL`` tests a wheel built elsewhere (``.ci/run`` hands
-over the one it built from the sdist).
+The venv sees the test environment's packages (torch, Lightning, ...) through a ``.pth`` file listing its import
+path: a venv made with ``--system-site-packages`` from inside a venv sees the base interpreter's packages, not the
+venv's. A ``.pth`` line adds a directory without running the ``.pth`` files in it, so the outer environment's
+editable vitfly (an import hook installed by such a file) stays out of reach; the tests check that the vitfly
+that runs is the venv's. Offline: the wheel is built without build isolation and installed without
+dependencies. ``$VITFLY_WHEEL`` tests a wheel built elsewhere (``.ci/run`` hands over the one it built from the
+sdist).
 """
 
 from __future__ import annotations
@@ -14,7 +15,6 @@ from __future__ import annotations
 import json
 import os
 import shutil
-import site
 import subprocess
 import sys
 import zipfile
@@ -48,6 +48,11 @@ def build_wheel(out: Path) -> Path:
     return next((out / "dist").glob("vitfly-*.whl"))
 
 
+def outer_paths() -> list[str]:
+    """The test environment's import path (its site-packages and what their .pth files added), less this tree."""
+    return [p for p in sys.path if p and Path(p).is_dir() and not Path(p).resolve().is_relative_to(REPO)]
+
+
 def make_venv(root: Path, *install: str) -> Path:
     """A venv with ``pip install --no-deps *install`` (the wheel, or ``-e DIR``); the test environment's
     site-packages behind it."""
@@ -55,7 +60,7 @@ def make_venv(root: Path, *install: str) -> Path:
     python = root / "bin" / "python"
     inner = Path(subprocess.run([python, "-c", "import sysconfig; print(sysconfig.get_path('purelib'))"],
                                 check=True, capture_output=True, text=True).stdout.strip())
-    (inner / "zz_test_environment.pth").write_text("\n".join(site.getsitepackages()) + "\n")
+    (inner / "zz_test_environment.pth").write_text("\n".join(outer_paths()) + "\n")
     subprocess.run([sys.executable, "-m", "pip", "--python", str(python), "install", "--no-deps", "--no-index",
                     "--no-build-isolation", "-q", *install], check=True)
     return root
