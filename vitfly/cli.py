@@ -14,6 +14,7 @@ import re
 import sys
 
 from vitfly.errors import VitflyError
+from vitfly.packaged import version_line
 from vitfly.quiet import quiet_third_party
 
 LIGHTNING_SUBCOMMANDS = ("fit", "validate", "test", "predict")
@@ -33,7 +34,19 @@ SUBCOMMANDS: dict[str, tuple[str, str]] = {
     "reproduce": ("reproduce", "the paper's results section: data, 11 trainings, every evaluation, results.md"),
     "dagger": ("dagger", "DAgger with the privileged expert beside behaviour cloning at equal labelled frames"),
     "publish-weights": ("publish_weights", "a trained checkpoint as weights/NAME.safetensors (fp16) + manifest"),
+    "configs": ("configs", "the configs shipped with vitfly: names for --config, what each is, where it lives"),
 }
+
+
+class _PrintVersion(argparse.Action):
+    """``--version``: one line, never wrapped (argparse's own version action wraps long paths)."""
+
+    def __init__(self, option_strings, dest, **kwargs):
+        super().__init__(option_strings, dest, nargs=0, **kwargs)
+
+    def __call__(self, parser, namespace, values, option_string=None):
+        print(version_line())
+        parser.exit()
 
 
 def _build_parser() -> argparse.ArgumentParser:
@@ -43,6 +56,7 @@ def _build_parser() -> argparse.ArgumentParser:
         f"Training subcommands ({', '.join(LIGHTNING_SUBCOMMANDS)}) are LightningCLI: "
         "see `vitfly fit --help`.",
     )
+    parser.add_argument("--version", action=_PrintVersion, help="vitfly's version and where it runs from, then exit")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     for name in LIGHTNING_SUBCOMMANDS:
         sub.add_parser(name, help=f"LightningCLI {name} (vitfly {name} --config X.yaml)", add_help=False)

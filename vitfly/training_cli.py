@@ -1,5 +1,7 @@
 """``vitfly fit | validate | test | predict``: LightningCLI over PolicyModule and TrajectoryDataModule.
 
+``--config`` takes a path or the name of a config shipped with vitfly (``--config fit/vit_lstm``: the
+``configs/fit/vit_lstm.yaml`` of a clone or of the installed package; `vitfly configs` lists them).
 YAML (omegaconf interpolation allowed)::
 
     seed_everything: 0
@@ -31,6 +33,7 @@ from lightning.pytorch.callbacks import ModelCheckpoint, ProgressBar, RichProgre
 from lightning.pytorch.cli import LightningArgumentParser, LightningCLI
 
 from vitfly.datamodules.datamodule import TrajectoryDataModule
+from vitfly.packaged import find_config
 from vitfly.training import checkpoint_defaults, default_wandb_offline, finish_wandb
 from vitfly.training_checkpoints import LastCheckpoint
 from vitfly.zoo.checkpoint import network_hparams
@@ -140,8 +143,34 @@ def _default_model(class_path: str) -> str:
     return name if name in register_policy_classes() else PolicyModule.default_model
 
 
+CONFIG_FLAGS = ("--config", "-c")
+
+
+def _config_value(value: str) -> str:
+    """A ``--config`` value: a path that exists as given, else the shipped config it names (``fit/vit_lstm``), else
+    as given (LightningCLI reports it, or reads it as YAML text)."""
+    if Path(value).exists():
+        return value
+    found = find_config(value)
+    return str(found) if found is not None else value
+
+
+def resolve_config_args(argv: list[str]) -> list[str]:
+    """``argv`` with each ``--config``/``-c`` value resolved by ``_config_value``."""
+    out = []
+    for i, arg in enumerate(argv):
+        if i > 0 and argv[i - 1] in CONFIG_FLAGS:
+            arg = _config_value(arg)
+        elif arg.startswith("--config="):
+            arg = "--config=" + _config_value(arg.partition("=")[2])
+        out.append(arg)
+    return out
+
+
 def build_cli(argv: list[str], run: bool = True) -> VitflyCLI:
-    """The LightningCLI object for ``argv`` (``["fit", "--config", ...]``)."""
+    """The LightningCLI object for ``argv`` (``["fit", "--config", ...]``; a config by path or by the name of a
+    shipped config, ``fit/vit_lstm``)."""
+    argv = resolve_config_args(list(argv))
     register_policy_classes()  # makes ``model: <registered name>`` resolvable
     omegaconf = {"parser_mode": "omegaconf"}
     # argv is passed explicitly because `vitfly` strips nothing; Lightning warns when sys.argv is also set

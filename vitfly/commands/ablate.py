@@ -10,7 +10,8 @@ from vitfly.errors import VitflyError
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--no-state", action="store_true",
                         help="the state-input ablation (paper: table-no-state-info); the only one so far")
-    parser.add_argument("--config", default="configs/ablate.yaml", help="ablation YAML")
+    parser.add_argument("--config", default="ablate",
+                        help="ablation YAML: a path, or a shipped config's name (`vitfly configs`)")
     parser.add_argument("--preset", help="a section under 'presets' in the YAML, e.g. tiny (CI-sized)")
     parser.add_argument("--models", nargs="+", help="architectures (default: the paper's five)")
     parser.add_argument("--out", help="run directory (train/, eval/, ablation.md)")

@@ -13,7 +13,8 @@ _DEFAULTS = CollectConfig()
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     keep = argparse.SUPPRESS  # unset flags leave the YAML's value (or the built-in default) alone
-    parser.add_argument("--config", default=keep, help="collect YAML, e.g. configs/collect/spheres.yaml")
+    parser.add_argument("--config", default=keep,
+                        help="collect YAML: a path, or a shipped config's name, e.g. collect/spheres")
     parser.add_argument("--out", required=True, help="HDF5 dataset to create, or to resume if it exists")
     parser.add_argument(
         "--trajectories",

@@ -8,7 +8,8 @@ import argparse
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     from vitfly.workflows.dagger import STAGE_NAMES_HELP
 
-    parser.add_argument("--config", default="configs/dagger.yaml", help="dagger YAML")
+    parser.add_argument("--config", default="dagger",
+                        help="dagger YAML: a path, or a shipped config's name (`vitfly configs`)")
     parser.add_argument("--preset", help="a section under 'presets' in the YAML: tiny (CI, under a minute), laptop "
                         "(ConvNet, ~30-45 min on 2 CPU cores), paper (ViT+LSTM at the paper's data scale, a GPU)")
     parser.add_argument("--model", help="architecture to train (overrides train.model), e.g. convnet or vit_lstm")

@@ -13,7 +13,8 @@ from vitfly.eval.config import BACKENDS, ENVS, load_sweep_config
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--config", help="evaluation YAML (e.g. configs/eval/spheres.yaml); flags override it")
+    parser.add_argument("--config", help="evaluation YAML: a path, or a shipped config's name (e.g. eval/spheres); "
+                        "flags override it")
     parser.add_argument("--policy", help="a checkpoint path, 'pretrained:NAME' (shipped weights, e.g. "
                         "pretrained:vit_lstm), 'expert' or 'straight' (config default: expert)")
     parser.add_argument("--arch", help="architecture of an original-project checkpoint (e.g. vit_lstm)")

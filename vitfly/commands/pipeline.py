@@ -6,7 +6,8 @@ import argparse
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--config", default="configs/quickstart.yaml", help="pipeline YAML")
+    parser.add_argument("--config", default="quickstart",
+                        help="pipeline YAML: a path, or a shipped config's name (`vitfly configs`)")
     parser.add_argument("--out", help="run directory (train/, eval/, pipeline.json)")
     parser.add_argument("--data", help="HDF5 dataset: used if complete, collected or completed if not")
     parser.add_argument("--physics", choices=("auto", "pybullet", "native"),

@@ -11,7 +11,8 @@ from vitfly.errors import VitflyError
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("checkpoint", help="a vitfly/Lightning checkpoint (vitfly fit, vitfly reproduce, ...)")
     parser.add_argument("--name", required=True, help="the name it loads by: pretrained:NAME (e.g. vit_lstm)")
-    parser.add_argument("--weights-dir", help="weights directory (default: $VITFLY_WEIGHTS_DIR or <repo>/weights)")
+    parser.add_argument("--weights-dir", help="weights directory (default: $VITFLY_WEIGHTS_DIR, else <repo>/weights "
+                        "in a clone; an installed vitfly asks for one)")
     parser.add_argument("--preset", help="provenance: the preset or recipe it was trained with")
     parser.add_argument("--dataset", help="provenance: the training dataset (its hash and frame count are recorded)")
     parser.add_argument("--field", action="append", default=[], metavar="KEY=JSON",

@@ -8,7 +8,8 @@ import argparse
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     from vitfly.workflows.reproduce_config import STAGES
 
-    parser.add_argument("--config", default="configs/reproduce.yaml", help="reproduce YAML")
+    parser.add_argument("--config", default="reproduce",
+                        help="reproduce YAML: a path, or a shipped config's name (`vitfly configs`)")
     parser.add_argument("--preset", help="a section under 'presets' in the YAML: tiny (CI, minutes), laptop (one "
                         "working day on 2 CPU cores), paper (the paper's protocol and training recipe, for a GPU), "
                         "paper_vitfly (the same budget with vitfly's recipes in large batches, for a GPU)")

@@ -12,6 +12,7 @@ from pathlib import Path
 import yaml
 
 from vitfly.errors import VitflyError
+from vitfly.packaged import config_path
 
 ENVS = ("spheres", "trees", "window")
 # inference back ends of learned policies: eager PyTorch, ONNX Runtime float32, ONNX Runtime with int8 products
@@ -141,7 +142,9 @@ def read_yaml(path: str | Path) -> dict:
 
 
 def load_sweep_config(path: str | Path | None = None, overrides: dict | None = None) -> SweepConfig:
-    """Defaults < YAML file < overrides (keys with value None are ignored)."""
+    """Defaults < YAML file (a path or a shipped config's name, e.g. ``eval/trees``) < overrides (keys with value
+    None are ignored)."""
+    path = config_path(path) if path else None
     data = read_yaml(path) if path else {}
     source = str(path) if path else "config"
     if isinstance(data, dict) and "evaluate" in data:  # a combined config file with an evaluate section

@@ -33,6 +33,7 @@ from pathlib import Path
 
 import numpy as np
 
+from vitfly import __version__
 from vitfly.errors import VitflyError
 from vitfly.eval import records
 from vitfly.eval.config import SweepConfig, parse_shard
@@ -144,6 +145,7 @@ def record_from_result(spec: TrialSpec, label: str, result, cfg: SweepConfig, pr
         "arch": cfg.arch,
         "backend": cfg.backend if cfg.policy not in ("expert", "straight") else None,
         "physics": resolve_physics(cfg.physics),  # the rigid-body back end that flew it
+        "vitfly_version": __version__,
         "batch_size": batch_size,
         "batch_call_ms": call_ms,
         # the simulator's own counts at the physics rate (metrics use the per-tick path, recomputable)

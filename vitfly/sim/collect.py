@@ -42,6 +42,7 @@ import yaml
 
 from vitfly.datamodules.schema import TrajectoryRecord, TrajectoryWriter, check_depth_compression, encode_depth
 from vitfly.errors import VitflyError
+from vitfly.packaged import config_path
 from vitfly.sim.camera import CameraConfig, expand_camera_preset
 from vitfly.sim.physics import resolve_physics
 from vitfly.sim.policies import ExpertPolicy
@@ -124,8 +125,10 @@ class CollectConfig:
 
 
 def load_collect_config(path: str | os.PathLike | None, overrides: dict[str, Any] | None = None) -> CollectConfig:
-    """Read a collect YAML (safe loader), apply ``overrides`` (flags; None values ignored), validate."""
+    """Read a collect YAML (safe loader; a path, or a shipped config's name such as ``collect/spheres``), apply
+    ``overrides`` (flags; None values ignored), validate."""
     data: dict[str, Any] = {}
+    path = config_path(path) if path is not None else None
     source = str(path) if path is not None else "collect config"
     if path is not None:
         try:

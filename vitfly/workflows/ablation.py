@@ -22,6 +22,7 @@ from vitfly.atomic import write_text
 from vitfly.errors import VitflyError
 from vitfly.eval.config import dataclass_from_dict, read_yaml
 from vitfly.eval.paper_tables import ABLATION_ENVS, ABLATION_SPEEDS, MODEL_LABELS, paper_success
+from vitfly.packaged import config_path
 from vitfly.workflows.pipeline import EvalStage, TrainStage, stage_collect, stage_evaluate, stage_train
 
 
@@ -47,7 +48,9 @@ def _deep_merge(base: dict, extra: dict) -> dict:
 
 def load_ablation_config(path: str | os.PathLike | None, preset: str | None = None,
                          overrides: dict | None = None) -> AblationConfig:
-    """Defaults < YAML < the YAML's ``presets.<preset>`` section (deep-merged) < overrides (top level)."""
+    """Defaults < YAML (a path or a shipped config's name) < the YAML's ``presets.<preset>`` section (deep-merged)
+    < overrides (top level)."""
+    path = config_path(path) if path else None
     data = dict(read_yaml(path)) if path else {}
     source = str(path) if path else "ablate config"
     presets = data.pop("presets", None) or {}

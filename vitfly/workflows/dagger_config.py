@@ -27,6 +27,7 @@ from pathlib import Path
 
 from vitfly.errors import VitflyError
 from vitfly.eval.config import dataclass_from_dict, read_yaml
+from vitfly.packaged import config_path
 
 TRAIN_SEEDS = range(0, 1000)  # collection seeds of every DAgger and baseline flight
 EVAL_SEED_MIN = 1000  # evaluation sweep seeds (vitfly evaluate / reproduce / pipeline use 1000)
@@ -158,7 +159,8 @@ def deep_merge(base: dict, extra: dict) -> dict:
 def load_dagger_config(path: str | os.PathLike | None, preset: str | None = None,
                        overrides: dict | None = None) -> DaggerConfig:
     """Defaults < YAML top level < ``presets.<preset>`` (deep-merged) < ``overrides`` (nested mappings merge;
-    None values are ignored)."""
+    None values are ignored). ``path``: a YAML file or a shipped config's name."""
+    path = config_path(path) if path else None
     data = dict(read_yaml(path)) if path else {}
     source = str(path) if path else "dagger config"
     presets = data.pop("presets", None) or {}

@@ -25,6 +25,7 @@ from pathlib import Path
 from vitfly.atomic import write_text
 from vitfly.errors import VitflyError
 from vitfly.eval.config import SweepConfig, dataclass_from_dict, read_yaml
+from vitfly.packaged import config_path
 
 
 @dataclass
@@ -83,7 +84,9 @@ class PipelineConfig:
 
 
 def load_pipeline_config(path: str | os.PathLike | None, overrides: dict | None = None) -> PipelineConfig:
-    """Defaults < YAML (sections ``train`` and ``evaluate`` nested) < overrides (top-level keys)."""
+    """Defaults < YAML (a path or a shipped config's name; sections ``train`` and ``evaluate`` nested) < overrides
+    (top-level keys)."""
+    path = config_path(path) if path else None
     data = dict(read_yaml(path)) if path else {}
     source = str(path) if path else "pipeline config"
     data.update({k: v for k, v in (overrides or {}).items() if v is not None})

@@ -19,6 +19,7 @@ from pathlib import Path
 
 from vitfly.errors import VitflyError
 from vitfly.eval.config import dataclass_from_dict, read_yaml
+from vitfly.packaged import config_path
 from vitfly.workflows.pipeline import EvalStage, TrainStage
 
 PAPER_MODELS = ["convnet", "lstmnet", "unet_lstm", "vit", "vit_lstm"]
@@ -30,7 +31,8 @@ class ReproduceTrain:
     """Which networks to train, and how: each model's recipe, then ``overrides``, then ``per_model[model]``."""
 
     source: str = "train"  # train: train every run here; pretrained: fly the shipped weights (pretrained:<model>)
-    recipes: str = "configs/fit"  # <recipes>/<model>.yaml: a `vitfly fit` config (LightningCLI layout)
+    recipes: str = "configs/fit"  # <recipes>/<model>.yaml: a `vitfly fit` config (LightningCLI layout); a shipped
+    # config's name where no such file exists
     models: list[str] = field(default_factory=lambda: [*PAPER_MODELS, "resnet18"])  # with the state input
     nostate_models: list[str] = field(default_factory=lambda: list(PAPER_MODELS))  # also trained without it
     overrides: dict = field(default_factory=dict)  # TrainStage fields for every model (dicts merge)
@@ -38,7 +40,7 @@ class ReproduceTrain:
     closed_loop_check: dict | None = None  # ClosedLoopCheck arguments (None: no check during training)
     publish_weights: bool = False  # publish each finished state model as pretrained:<model>
     publish_models: list[str] = field(default_factory=lambda: list(PAPER_MODELS))
-    weights_dir: str | None = None  # None: $VITFLY_WEIGHTS_DIR or <repository>/weights
+    weights_dir: str | None = None  # None: $VITFLY_WEIGHTS_DIR, else <repository>/weights (a clone; installed: none)
 
 
 @dataclass
@@ -116,7 +118,9 @@ def _deep_merge(base: dict, extra: dict) -> dict:
 
 def load_reproduce_config(path: str | os.PathLike | None, preset: str | None = None,
                           overrides: dict | None = None) -> ReproduceConfig:
-    """Defaults < YAML top level < its ``presets.<preset>`` (deep-merged) < overrides (top-level keys)."""
+    """Defaults < YAML top level (a path or a shipped config's name) < its ``presets.<preset>`` (deep-merged) <
+    overrides (top-level keys)."""
+    path = config_path(path) if path else None
     data = dict(read_yaml(path)) if path else {}
     source = str(path) if path else "reproduce config"
     presets = data.pop("presets", None) or {}
@@ -229,8 +233,10 @@ def recipe_fields(path: str | Path, model: str) -> dict:
 
 
 def train_stage(cfg: ReproduceConfig, model: str, use_state: bool, source: str = "reproduce config") -> TrainStage:
-    """Recipe < ``train.overrides`` < ``train.per_model[model]``, as the pipeline's TrainStage."""
-    recipe = Path(cfg.train.recipes) / f"{model}.yaml"
+    """Recipe < ``train.overrides`` < ``train.per_model[model]``, as the pipeline's TrainStage. The recipe is
+    ``<train.recipes>/<model>.yaml``; where no such file exists, the shipped config of that name (``configs/fit``
+    is ``fit``)."""
+    recipe = config_path(Path(cfg.train.recipes) / f"{model}.yaml")
     fields = _deep_merge(recipe_fields(recipe, model), cfg.train.overrides)
     fields = _deep_merge(fields, cfg.train.per_model.get(model) or {})
     fields.update(model=model, use_state=use_state)
@@ -252,13 +258,21 @@ TRAIN_SOURCES = ("train", "pretrained")
 
 
 def check_train_source(cfg: ReproduceConfig, source: str) -> None:
-    """``train.source`` is known, and ``pretrained`` asks only for what is shipped (state models)."""
+    """``train.source`` is known, ``pretrained`` asks only for what is shipped (state models), and
+    ``publish_weights`` has a directory to write (an installed vitfly's own weights are read-only)."""
     if cfg.train.source not in TRAIN_SOURCES:
         raise VitflyError(f"{source}: train.source: expected one of {', '.join(TRAIN_SOURCES)}, "
                           f"got {cfg.train.source!r}")
     if cfg.train.source == "pretrained" and cfg.train.weights_dir is not None:
         raise VitflyError(f"{source}: train.source pretrained flies pretrained:<model> from $VITFLY_WEIGHTS_DIR or "
-                          "<repository>/weights; set that instead of train.weights_dir")
+                          "the shipped weights; set that instead of train.weights_dir")
+    if cfg.train.publish_weights:
+        from vitfly.zoo.pretrained import publish_dir
+
+        try:
+            publish_dir(cfg.train.weights_dir)
+        except VitflyError as err:
+            raise VitflyError(f"{source}: train.publish_weights: {err}") from None
     if cfg.train.source == "pretrained" and cfg.train.nostate_models:
         raise VitflyError(f"{source}: train.source pretrained flies the shipped weights, which are trained with "
                           "the state input only; set train.nostate_models: [] (the ablation needs training)")

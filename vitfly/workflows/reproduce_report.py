@@ -212,9 +212,14 @@ def _publish_closed_loop(cfg: ReproduceConfig, rows: dict) -> None:
 
 
 def _record_closed_loop(cfg: ReproduceConfig, rows: dict) -> None:
-    """The shipped weights' closed-loop numbers into their manifest entries (those flown in this study)."""
-    from vitfly.zoo.pretrained import update_manifest
+    """The shipped weights' closed-loop numbers into their manifest entries (those flown in this study); not
+    into an installed vitfly's own manifest (they stay in results.json)."""
+    from vitfly.zoo.pretrained import WEIGHTS_ENV, can_publish, update_manifest
 
+    if not can_publish():
+        print(f"[report] closed-loop numbers kept in results.json only: vitfly is installed, and its shipped weights "
+              f"manifest is not written to (set {WEIGHTS_ENV} to fly and record weights of your own)")
+        return
     for model in cfg.train.models:
         numbers = closed_loop_numbers(rows, model, cfg)
         if any(env in numbers for env in ("spheres", "trees", "window")):

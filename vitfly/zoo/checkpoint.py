@@ -3,8 +3,9 @@
 Format (contract 2 in the conventions; the same shape as Lightning checkpoints written by ``vitfly fit``):
 a dict saved with ``torch.save`` holding ``state_dict`` (the network's entries prefixed ``net.``),
 ``hyper_parameters`` = {``model``: registry name, ``use_state``: bool, ``model_kwargs``: dict} and
-``pytorch-lightning_version`` (so Lightning's ``load_from_checkpoint`` accepts it). Everything loads
-with ``torch.load(..., weights_only=True)``.
+``pytorch-lightning_version`` (so Lightning's ``load_from_checkpoint`` accepts it), and ``vitfly`` =
+{``format``, ``version``, ``vitfly_version``: the vitfly that wrote it, plus provenance}. Everything loads with
+``torch.load(..., weights_only=True)``.
 
 ``sensor`` (optional, top level): what the network was trained to see, as plain values taken from the
 training dataset: ``depth_max_m`` (m that normalised depth 1 stands for), ``camera`` (the dataset's
@@ -22,6 +23,7 @@ from collections.abc import Mapping
 import torch
 from torch import nn
 
+from vitfly import __version__
 from vitfly.atomic import atomic_path
 from vitfly.errors import VitflyError
 from vitfly.zoo.legacy import check_state_dict, identify_architecture, read_torch_file
@@ -97,6 +99,12 @@ def sensor_conflicts(stored: Mapping | None, current: Mapping | None) -> list[st
     return out
 
 
+def vitfly_stamp(metadata: Mapping | None = None) -> dict:
+    """The checkpoint's ``vitfly`` entry: format, format version, the vitfly version writing it, ``metadata``."""
+    return {"format": CHECKPOINT_FORMAT, "version": CHECKPOINT_VERSION, "vitfly_version": __version__,
+            **dict(metadata or {})}
+
+
 def _lightning_version() -> str:
     try:
         import lightning
@@ -128,7 +136,7 @@ def save_checkpoint(
         "state_dict": {NET_PREFIX + k: v.detach().cpu().clone() for k, v in net.state_dict().items()},
         "hyper_parameters": {"model": name, "use_state": bool(use_state), "model_kwargs": dict(model_kwargs or {})},
         "pytorch-lightning_version": _lightning_version(),
-        "vitfly": {"format": CHECKPOINT_FORMAT, "version": CHECKPOINT_VERSION, **dict(metadata or {})},
+        "vitfly": vitfly_stamp(metadata),
     }
     sensor = check_sensor(sensor, "save_checkpoint(sensor=...)")
     if sensor is not None:

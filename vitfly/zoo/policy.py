@@ -26,7 +26,7 @@ from torchmetrics import MeanSquaredError, Metric, R2Score
 
 from vitfly.errors import VitflyError
 from vitfly.zoo.base import DepthPolicyNet
-from vitfly.zoo.checkpoint import SENSOR_KEY, check_sensor, read_sensor, sensor_conflicts
+from vitfly.zoo.checkpoint import SENSOR_KEY, check_sensor, read_sensor, sensor_conflicts, vitfly_stamp
 from vitfly.zoo.compiled import compile_encoder
 from vitfly.zoo.layers import state_vector
 from vitfly.zoo.masked_norm import FrameWeights, mask_batch_norm
@@ -431,7 +431,8 @@ class PolicyModule(L.LightningModule):
     def on_save_checkpoint(self, checkpoint: dict[str, Any]) -> None:
         """Store the sensor of the training dataset (``datamodule.sensor``: depth range, camera, control rate) as
         the checkpoint's top-level ``sensor``; without one, keep the sensor of the checkpoint this run started
-        from."""
+        from. ``vitfly`` says which vitfly wrote it (``vitfly.zoo.checkpoint.vitfly_stamp``)."""
+        checkpoint["vitfly"] = vitfly_stamp()
         datamodule = getattr(self._trainer, "datamodule", None) if self._trainer is not None else None
         sensor = getattr(datamodule, "sensor", None) or getattr(self, "_loaded_sensor", None)
         if sensor:

@@ -8,18 +8,25 @@ Manifest (JSON)::
     {"format": "vitfly.weights", "version": 1,
      "models": {"vit_lstm": {"file": "vit_lstm.safetensors", "sha256": "...", "dtype": "float16",
                              "model": "vit_lstm", "use_state": true, "model_kwargs": {},
+                             "vitfly_version": "0.1.0",
                              "epochs": 4, "steps": 480, "source_checkpoint": "...",
                              "preset": "laptop", "dataset_hash": "...", "train_frames": 63124,
                              "closed_loop": {...}, ...}}}
 
-``model``/``use_state``/``model_kwargs`` say which registry network to build; the rest is provenance
-(free-form plain values given by the publisher). Loading is safe: safetensors holds raw tensors only
+``model``/``use_state``/``model_kwargs`` say which registry network to build; ``vitfly_version`` which vitfly
+published it (entries published before it was recorded have none); the rest is provenance (free-form plain
+values given by the publisher). Loading is safe: safetensors holds raw tensors only
 (no pickle); the file's SHA-256 must equal the manifest's, and its keys and shapes the network's.
 Every failure is one line. Floating-point tensors are stored as fp16 (half the size; the networks'
 outputs move by about 1e-3) and loaded into the network's own dtype; integer buffers keep theirs.
 
-Where: ``directory`` if given, else ``$VITFLY_WEIGHTS_DIR``, else ``weights/`` at the repository root
-(beside the ``vitfly`` package, as in a clone or an editable install), else ``./weights``.
+Where (reading): ``directory`` if given, else ``$VITFLY_WEIGHTS_DIR``, else the shipped weights
+(``vitfly.packaged``: the installed package's ``vitfly/weights``, or ``weights/`` at the repository root in a
+clone or an editable install) when they hold a manifest, else ``./weights``.
+
+Where (publishing, ``publish_dir``): ``directory``, else ``$VITFLY_WEIGHTS_DIR``, else, in a clone, the
+repository's ``weights/`` as for reading. An installed vitfly never writes into its own package: without a
+directory, publishing is refused with one line before anything is written.
 
 Publishing writes the weights file and then the manifest, each atomically (temporary file + rename).
 A kill between the two leaves a manifest whose hash does not match the file: loading refuses it with
@@ -39,8 +46,10 @@ from typing import Any
 import torch
 from torch import nn
 
+from vitfly import __version__
 from vitfly.atomic import atomic_path, write_text
 from vitfly.errors import VitflyError
+from vitfly.packaged import shipped_dir, source_root
 from vitfly.zoo.legacy import check_state_dict, read_torch_file
 from vitfly.zoo.registry import create_model, list_models
 
@@ -51,20 +60,35 @@ MANIFEST_FORMAT = "vitfly.weights"
 MANIFEST_VERSION = 1
 STORED_DTYPE = torch.float16
 NAME_PATTERN = re.compile(r"[A-Za-z0-9][A-Za-z0-9_.-]*")
-RESERVED_FIELDS = ("file", "sha256", "dtype", "model", "use_state", "model_kwargs", "sensor")
+RESERVED_FIELDS = ("file", "sha256", "dtype", "model", "use_state", "model_kwargs", "sensor", "vitfly_version")
 
 
 def weights_dir(directory: str | os.PathLike | None = None) -> Path:
-    """The weights directory: ``directory``, else ``$VITFLY_WEIGHTS_DIR``, else ``<repository>/weights`` when it
-    holds a manifest, else ``./weights``."""
+    """The weights directory to read: ``directory``, else ``$VITFLY_WEIGHTS_DIR``, else the shipped weights
+    (installed package or repository) when they hold a manifest, else ``./weights``."""
     if directory is not None:
         return Path(directory)
     if os.environ.get(WEIGHTS_ENV):
         return Path(os.environ[WEIGHTS_ENV])
-    beside_package = Path(__file__).resolve().parents[2] / "weights"
-    if (beside_package / MANIFEST_NAME).is_file() or not (Path.cwd() / "weights" / MANIFEST_NAME).is_file():
-        return beside_package
-    return Path.cwd() / "weights"
+    shipped, local = shipped_dir("weights"), Path.cwd() / "weights"
+    if shipped is not None and ((shipped / MANIFEST_NAME).is_file() or not (local / MANIFEST_NAME).is_file()):
+        return shipped
+    return local
+
+
+def can_publish(directory: str | os.PathLike | None = None) -> bool:
+    """Whether ``publish_dir(directory)`` names a directory (false: an installed vitfly, no directory given)."""
+    return directory is not None or bool(os.environ.get(WEIGHTS_ENV)) or source_root() is not None
+
+
+def publish_dir(directory: str | os.PathLike | None = None) -> Path:
+    """The weights directory to write: ``directory``, else ``$VITFLY_WEIGHTS_DIR``, else (a clone) the one
+    ``weights_dir`` reads; an installed vitfly's own weights are read-only (one line)."""
+    if can_publish(directory):
+        return weights_dir(directory)
+    raise VitflyError(f"vitfly is installed as a package ({shipped_dir('weights') or 'no shipped weights'}), and its "
+                      f"shipped weights are not written to: give a weights directory (--weights-dir DIR, "
+                      f"train.weights_dir in a reproduce config) or set {WEIGHTS_ENV}")
 
 
 def is_pretrained_spec(spec: str) -> bool:
@@ -259,7 +283,7 @@ def save_pretrained(ckpt_path: str | os.PathLike, name: str, manifest_fields: Ma
     if clash:
         raise VitflyError(f"{source}: manifest field {clash[0]!r} is written by the publisher itself")
     fields = {k: _plain(v, source, k) for k, v in fields.items()}
-    root = weights_dir(directory)
+    root = publish_dir(directory)
     manifest = read_manifest(root, missing_ok=True)  # a broken manifest is refused before anything is written
     net, hparams, provenance = _checkpoint_parts(ckpt_path)
     tensors = fp16_state_dict(net, source)
@@ -271,7 +295,8 @@ def save_pretrained(ckpt_path: str | os.PathLike, name: str, manifest_fields: Ma
         save_file(tensors, str(tmp), metadata=header)
     entry = {"file": path.name, "sha256": file_sha256(path), "dtype": "float16", "model": str(hparams["model"]),
              "use_state": bool(hparams.get("use_state", True)),
-             "model_kwargs": _plain(model_kwargs, source, "model_kwargs"), **provenance, **fields}
+             "model_kwargs": _plain(model_kwargs, source, "model_kwargs"), "vitfly_version": __version__,
+             **provenance, **fields}
     manifest["models"][name] = entry
     manifest["models"] = dict(sorted(manifest["models"].items()))
     write_text(root / MANIFEST_NAME, json.dumps(manifest, indent=2) + "\n")
@@ -280,7 +305,7 @@ def save_pretrained(ckpt_path: str | os.PathLike, name: str, manifest_fields: Ma
 
 def update_manifest(name: str, fields: Mapping, directory: str | os.PathLike | None = None) -> dict:
     """Add or replace provenance ``fields`` of a published entry (e.g. its closed-loop numbers)."""
-    root = weights_dir(directory)
+    root = publish_dir(directory)
     entry = manifest_entry(name, root)
     source = f"{root / MANIFEST_NAME} models.{name}"
     clash = sorted(set(fields) & set(RESERVED_FIELDS))
