@@ -4,6 +4,7 @@ import math
 
 import numpy as np
 import pytest
+from scipy.stats import beta
 
 from vitfly.errors import VitflyError
 from vitfly.eval.paired import mcnemar_exact, paired_difference, pairs, scene_bootstrap_interval
@@ -44,10 +45,11 @@ def test_success_difference_counts_discordant_pairs():
     assert d.mean_a == pytest.approx(32 / 40) and d.mean_b == pytest.approx(23 / 40)
     assert d.diff == pytest.approx(9 / 40)
     assert d.mcnemar_p == pytest.approx(2 * (1 + 15 + 105 + 455) / 2**15)  # 2 P(X <= 3), X ~ Bin(15, 1/2)
-    # per-pair differences: +1 twelve times, -1 three times, 0 else: variance 15/40 - (9/40)^2
-    se = math.sqrt((15 / 40 - (9 / 40) ** 2) * 40 / 39 / 40)
-    assert d.low < d.diff < d.high
-    assert (d.high - d.low) / 2 == pytest.approx(1.96 * se, rel=0.15)
+    # the exact interval behind McNemar's test: Clopper-Pearson of 12 of the 15 discordant pairs (beta quantiles),
+    # as a difference (2 p - 1) * 15 / 40
+    lo, hi = beta.ppf(0.025, 12, 4), beta.ppf(0.975, 13, 3)
+    assert (d.low, d.high) == pytest.approx(((2 * lo - 1) * 15 / 40, (2 * hi - 1) * 15 / 40))
+    assert d.low > 0  # McNemar's p = 0.035 < 0.05: the interval excludes 0
     assert d.decided and d.better == "a" and d.verdict == "a better"
     assert d.text().startswith("+22 points [")
 
@@ -160,8 +162,9 @@ def test_findings_table_and_lead_table():
     assert "| ViT+LSTM vs ConvNet, spheres | collisions per trial | -1.00 [-1.00, -1.00], 30 pairs | for |" in md
     assert "Verdicts:" in md and "n/a" in md  # trees, window, ablation not flown
     lead = lead_table(spheres, "spheres")
-    # success: ViT+LSTM 30/30, ConvNet 0/30 -> +100 points at 7 m/s and pooled, decided (*)
-    assert "| ConvNet | +100 points [+100, +100], 30 pairs, McNemar p=1.9e-09 * |" in lead
+    # success: ViT+LSTM 30/30, ConvNet 0/30 -> +100 points at 7 m/s, all 30 pairs discordant: Clopper-Pearson
+    # lower bound of 30/30 is 0.025 ** (1 / 30), so the difference's is 2 * 0.8843 - 1 = +77 points; decided (*)
+    assert "| ConvNet | +100 points [+77, +100], 30 pairs, McNemar p=1.9e-09 * |" in lead
 
 
 def test_paired_csv_rows_per_speed_and_pooled():
@@ -175,6 +178,8 @@ def test_paired_csv_rows_per_speed_and_pooled():
                                                         ("collisions", "3"), ("collisions", "7"), ("collisions", "all")]
     pooled = rows[2]
     assert pooled["pairs"] == 10 and pooled["scenes"] == 5 and pooled["diff"] == pytest.approx(0.5)
+    assert pooled["mcnemar_p"] is None  # pooled pairs share scenes: not independent, bootstrap only
     text = paired_csv(rows)
     assert text.splitlines()[0].startswith("env,metric,a,b,speed,pairs")
-    assert text.splitlines()[1] == "spheres,success,a,b,3,5,5,1,0,1,1,1,0.0625,a better"
+    # 5 of 5 discordant for a: Clopper-Pearson lower bound 0.025 ** (1 / 5) = 0.4782 -> 2 * 0.4782 - 1
+    assert text.splitlines()[1] == "spheres,success,a,b,3,5,5,1,0,1,-0.0436475,1,0.0625,cannot tell"

@@ -5,14 +5,16 @@ at every speed (``vitfly.eval.sweep``). So two policies are compared on pairs: t
 between them, scene by scene, cancels the scene's own difficulty, which unpaired rates with their separate
 intervals cannot. This module gives that difference with a 95 % interval.
 
-Interval: a paired bootstrap over scenes (``scipy.stats.bootstrap``, BCa, 10,000 resamples, seeded).
-A resample draws scenes with replacement and keeps every speed flown in each drawn scene with both of its
-policies' trials, so the interval respects both the pairing and the scenes shared across speeds; the
-statistic is the mean difference over the resampled (scene, speed) pairs. Why a bootstrap and not a
-formula: one method serves every metric (success as 0/1, collisions per trial, energy cost, commanded
-acceleration), skewed counts included, with no normal approximation. For success, McNemar's exact test of
-the discordant pairs (one policy succeeded, the other failed) is given beside it (``mcnemar_p``), the
-classical paired test for 0/1 outcomes; verdicts rest on the interval.
+Intervals. Success (0/1) at one speed: the exact interval that goes with McNemar's test. Only the discordant
+pairs (one policy succeeded, the other not) carry the difference: given their number m, the count where ``a``
+alone succeeded is binomial with p = 1/2 when neither policy is better, so the Clopper-Pearson interval of that
+share, scaled to the difference (2 p - 1) m / n, excludes 0 exactly when McNemar's exact test rejects at 5 %
+(``mcnemar_p``, given beside it). Everything else (collisions per trial, energy cost, commanded acceleration,
+and success pooled over speeds): a paired bootstrap over scenes (``scipy.stats.bootstrap``, BCa, 10,000
+resamples, seeded). A resample draws scenes with replacement and keeps every speed flown in each drawn scene
+with both of its policies' trials, so the interval respects both the pairing and the scenes shared across speeds
+(which McNemar's test, assuming independent pairs, would not); one method serves skewed counts and continuous
+metrics alike, with no normal approximation.
 
 A difference is *decided* when its interval excludes 0. ``verdict`` says which policy is better, or
 ``cannot tell``; the interval's half-width is the smallest difference the study could have told apart.
@@ -49,8 +51,8 @@ class PairedDifference:
     """``a`` minus ``b`` on one metric over the (scene, speed) pairs both flew.
 
     ``diff`` is mean(a) - mean(b) over those pairs (for success: a fraction in [-1, 1]), ``low`` and
-    ``high`` its 95 % paired-bootstrap interval. For success, ``a_only`` / ``b_only`` count the discordant
-    pairs and ``mcnemar_p`` is McNemar's exact two-sided p-value.
+    ``high`` its 95 % interval (see the module docstring). For success at one speed, ``a_only`` / ``b_only``
+    count the discordant pairs and ``mcnemar_p`` is McNemar's exact two-sided p-value.
     """
 
     metric: str
@@ -162,6 +164,15 @@ def mcnemar_exact(a_only: int, b_only: int) -> float:
     return 1.0 if n == 0 else float(binomtest(min(a_only, b_only), n, 0.5).pvalue)
 
 
+def mcnemar_interval(a_only: int, b_only: int, pairs: int, confidence: float = CONFIDENCE) -> tuple[float, float]:
+    """Exact interval of the success difference from the discordant pairs (see the module docstring)."""
+    m = a_only + b_only
+    if m == 0:
+        return 0.0, 0.0
+    ci = binomtest(a_only, m, 0.5).proportion_ci(confidence_level=confidence, method="exact")
+    return (2 * ci.low - 1) * m / pairs, (2 * ci.high - 1) * m / pairs
+
+
 def paired_difference(records: Iterable[TrialRecord], a: str, b: str, env: str, metric: str = "success",
                       speeds: Sequence[float] | None = None, confidence: float = CONFIDENCE,
                       resamples: int = RESAMPLES, seed: int = 0) -> PairedDifference | None:
@@ -171,11 +182,15 @@ def paired_difference(records: Iterable[TrialRecord], a: str, b: str, env: str, 
     scene, speed, va, vb = pairs(records, a, b, env, metric, speeds)
     if len(va) == 0:
         return None
-    low, high = scene_bootstrap_interval(scene, va - vb, confidence, resamples, seed)
     a_only = b_only = p = None
     if metric in OUTCOMES:
         a_only, b_only = int(np.sum((va == 1) & (vb == 0))), int(np.sum((va == 0) & (vb == 1)))
+    one_per_scene = len(set(scene.tolist())) == len(scene)  # one speed: the pairs are independent
+    if metric in OUTCOMES and one_per_scene:
         p = mcnemar_exact(a_only, b_only)
+        low, high = mcnemar_interval(a_only, b_only, len(va), confidence)
+    else:
+        low, high = scene_bootstrap_interval(scene, va - vb, confidence, resamples, seed)
     return PairedDifference(metric, a, b, env, tuple(sorted(set(speed.tolist()))), len(va), len(set(scene.tolist())),
                             float(va.mean()), float(vb.mean()), float((va - vb).mean()), low, high,
                             a_only, b_only, p)

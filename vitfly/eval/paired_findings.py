@@ -107,7 +107,8 @@ def beats_expert_fast(spheres: Sequence[TrialRecord]) -> PairedFinding:
         verdict = "partly" if others else "reproduced"
     else:
         verdict = "not" if mine.better == "expert" else "cannot tell"
-    why = (f"ViT+LSTM {mine.verdict.replace('vit_lstm', 'ViT+LSTM')}; other models decided below the expert: "
+    mine_text = {None: "cannot tell", "vit_lstm": "below", "expert": "above"}[mine.better]
+    why = (f"ViT+LSTM vs the expert: {mine_text}; other models decided below the expert: "
            f"{', '.join(label(m) for m in others) or 'none'}")
     return PairedFinding(key, claim, "collisions", rule, verdict, diffs, why)
 
@@ -214,10 +215,12 @@ def lead_table(records: Sequence[TrialRecord], env: str, leader: str = "vit_lstm
     if not policies or not speeds:
         return "(not flown)\n"
     head = " | ".join(f"{s:g} m/s" for s in speeds)
-    lines = [f"| {_policy(leader)} minus | {head} | all speeds |", "|---|" + "---:|" * (len(speeds) + 1)]
+    pooled = len(speeds) > 1
+    lines = [f"| {_policy(leader)} minus | {head} |{' all speeds |' if pooled else ''}",
+             "|---|" + "---:|" * (len(speeds) + pooled)]
     for p in policies:
         cells = []
-        for sp in [[s] for s in speeds] + [None]:
+        for sp in [[s] for s in speeds] + ([None] if len(speeds) > 1 else []):
             d = paired_difference(records, leader, p, env, metric, sp)
             cells.append("-" if d is None else f"{d.text()}{' *' if d.decided else ''}")
         lines.append(f"| {_policy(p)} | " + " | ".join(cells) + " |")
