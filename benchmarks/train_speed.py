@@ -123,6 +123,12 @@ def measure_steps(
         if dev.type == "cuda":
             torch.cuda.synchronize()
 
+    median_s, warmup_s = time_batches(one_batch, warmup, iters)
+    return {"fps": batch * steps / median_s, "warmup_s": warmup_s}
+
+
+def time_batches(one_batch, warmup: int, iters: int) -> tuple[float, float]:
+    """(median seconds per batch over ``iters`` timed calls, seconds of the ``warmup`` calls before them)."""
     start = time.perf_counter()
     for _ in range(warmup):
         one_batch()
@@ -132,7 +138,7 @@ def measure_steps(
         start = time.perf_counter()
         one_batch()
         times.append(time.perf_counter() - start)
-    return {"fps": batch * steps / statistics.median(times), "warmup_s": warmup_s}
+    return statistics.median(times), warmup_s
 
 
 def measure_arm(
@@ -177,18 +183,10 @@ def measure_arm(
         if dev.type == "cuda":
             torch.cuda.synchronize()
 
-    start = time.perf_counter()
-    for _ in range(warmup):
-        one_batch()
-    warmup_s = time.perf_counter() - start
-    times = []
-    for _ in range(iters):
-        start = time.perf_counter()
-        one_batch()
-        times.append(time.perf_counter() - start)
+    median_s, warmup_s = time_batches(one_batch, warmup, iters)
     from torch._dynamo.utils import counters
 
-    return {"fps": batch * steps / statistics.median(times), "warmup_s": warmup_s, "padded": list(data["mask"].shape),
+    return {"fps": batch * steps / median_s, "warmup_s": warmup_s, "padded": list(data["mask"].shape),
             # compiled graphs, and how often inductor fell back from CUDA graphs (reasons on stderr)
             "graphs": int(counters["stats"]["unique_graphs"]),
             "cudagraph_skips": int(counters["inductor"]["cudagraph_skips"])}
