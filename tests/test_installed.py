@@ -112,6 +112,10 @@ def test_the_installed_vitfly_runs_with_its_own_configs_and_weights(venv, run):
     record = json.loads((run.cwd / "eval" / "trials.jsonl").read_text().splitlines()[0])
     assert record["extra"]["vitfly_version"] == __version__
     assert "class_path: vitfly.zoo.policy.vit_lstm" in run("fit", "--config", "fit/vit_lstm", "--print_config").stdout
+    for name in ("lstmnet", "unet_lstm", "vit", "vit_lstm"):  # every shipped network flies from the wheel
+        out = run("evaluate", "--policy", f"pretrained:{name}", "--speeds", "4", "--trials", "1", "--timeout", "1.5",
+                  "--out", "eval", "--no-gif", "--no-plots", "--no-progress").stdout
+        assert "1 trials flown" in out, name
     assert sorted(os.listdir(run.cwd)) == ["eval"]  # nothing else written here, no weights/ or configs/ wanted
 
 
