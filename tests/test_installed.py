@@ -49,8 +49,14 @@ def build_wheel(out: Path) -> Path:
 
 
 def outer_paths() -> list[str]:
-    """The test environment's import path (its site-packages and what their .pth files added), less this tree."""
-    return [p for p in sys.path if p and Path(p).is_dir() and not Path(p).resolve().is_relative_to(REPO)]
+    """The test environment's import path (its site-packages and what their .pth files added), less this tree's
+    sources (a venv inside the checkout, as CI's .venv, stays: it holds the dependencies)."""
+    env = Path(sys.prefix).resolve()
+
+    def ours(p: Path) -> bool:
+        return p.is_relative_to(REPO) and not p.is_relative_to(env)
+
+    return [p for p in sys.path if p and Path(p).is_dir() and not ours(Path(p).resolve())]
 
 
 def make_venv(root: Path, *install: str) -> Path:
