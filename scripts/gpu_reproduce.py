@@ -1,9 +1,11 @@
-"""Train runs of a ``vitfly reproduce`` preset on a GPU machine lent in time-boxed slots, and carry them home.
+"""Train runs of a ``vitfly reproduce`` preset on a GPU machine lent in time-boxed slots, and carry them home:
+the ``train``, ``train-one``, ``status`` and runs' ``unpack`` commands of ``scripts/gpu.py`` (the old command
+line ``scripts/gpu_reproduce.py ARGS`` is ``scripts/gpu.py ARGS``).
 
 There (the device machine, 16 cores and one GPU; at most 10 minutes a command; at most 64 MiB carried to it,
 8 files of 16 MiB brought back):
 
-    python3 scripts/gpu_reproduce.py train --preset paper --out DIR --expect-data-hash HASH \\
+    python3 scripts/gpu.py train --preset paper --out DIR --expect-data-hash HASH \\
         --runs convnet-state vit_lstm-state ... [--resume-from runs/reproduce-paper/train/lstmnet-state ...]
 
 1. the preset's dataset, collected there with many workers (the collector is deterministic: the file is
@@ -15,18 +17,19 @@ There (the device machine, 16 cores and one GPU; at most 10 minutes a command; a
    ``last.ckpt``. Every epoch ends in ``last.ckpt``; a run does not start an epoch that would end after the
    deadline (``--stop-after-epochs`` stops it after that many), and one still running then is killed and
    goes on from its last epoch next time. A run with a done.json is never trained again;
-3. the runs packed for the trip back as ``runs.tar.NNN`` (at most ``--return-mib``, finished runs first):
+3. the runs packed for the trip back as ``runs.tar.NNN`` (``scripts/gpu_pack.py``; at most ``--return-mib``,
+   finished runs first):
    a finished run as metrics, split, cost, done.json and its best checkpoint without optimiser state (network
    weights in fp16, as the shipped weights); an unfinished one as its resume state (``scripts/gpu_slots.py``:
    ``last.ckpt`` with fp32 weights, Adam moments in fp32 or ``--moments bf16``, loop and random-generator
    state; the best checkpoint so far in fp16; ``unfinished.json``: epochs done, data hash, the slots so far).
-   DIR/gpu_reproduce.json says what happened to each run; the command exits 0 when every run came back
-   (finished, or unfinished with at least one more epoch) or was finished before.
+   DIR/gpu_reproduce.json says what happened to each run and holds the pieces' manifest; the command exits 0
+   when every run came back (finished, or unfinished with at least one more epoch) or was finished before.
 
 Here (the machine that goes on with the preset):
 
-    python3 scripts/gpu_reproduce.py unpack --preset paper DIR
-    python3 scripts/gpu_reproduce.py status --preset paper
+    python3 scripts/gpu.py unpack --preset paper DIR
+    python3 scripts/gpu.py status --preset paper
 
 ``unpack`` refuses runs trained on other data than the local dataset, then puts each under the preset's
 ``train/``: a finished one with done.json naming the local checkpoint (``vitfly reproduce`` skips it as done),
@@ -53,6 +56,7 @@ sys.path.insert(0, str(ROOT))
 DROPPED_KEYS = ("optimizer_states", "lr_schedulers", "callbacks", "loops")  # resume state, not the network
 RUN_FILES = ("metrics.csv", "split.json", "cost.json", "hparams.yaml")  # what travels besides checkpoints
 SLOT_ENDED_RC = 3  # train-one's exit status when the slot ended before the run did
+REPORT = "gpu_reproduce.json"  # what happened to each run, and the manifest of runs.tar.NNN
 
 
 def log(msg: str) -> None:
@@ -170,28 +174,12 @@ def stage_unfinished(d: Path, dst: Path, marker: dict, moments: str) -> None:
     copy_run_files(d, dst, marker["epochs"])
 
 
-def pack(staged: list[tuple[str, Path]], out: Path, work: Path, budget: int) -> tuple[list[str], list[str]]:
+def pack(staged: list[tuple[str, Path]], out: Path, work: Path, budget: int) -> dict:
     """The staged run folders, in order, into ``out/runs.tar.NNN`` while they fit ``budget`` bytes; returns the
-    labels packed and those left out."""
-    import tarfile
+    manifest (``scripts/gpu_pack.py``: what was packed, what was left out, the pieces)."""
+    from scripts.gpu_pack import pack as pack_pieces
 
-    from scripts.gpu_slots import tree_bytes
-    from scripts.gpu_study import write_pieces
-
-    packed, left, total = [], [], 0
-    tar_path = work / "runs.tar"
-    with tarfile.open(tar_path, "w") as tar:
-        for label, folder in staged:
-            size = tree_bytes(folder) + 4096  # tar headers and padding, generously
-            if total + size > budget:
-                left.append(label)
-                continue
-            tar.add(folder, arcname=label)
-            packed.append(label)
-            total += size
-    if packed:
-        write_pieces(tar_path, out)
-    return packed, left
+    return pack_pieces(staged, out, "runs", work, budget)
 
 
 # -- there: the slot --------------------------------------------------------------------------------------------
@@ -261,8 +249,8 @@ def wrong_data(resumed: dict[str, tuple[Path, dict]], data_hash: str) -> str | N
 def start_runs(args, labels: list[str], resumed: dict, stop_at: float, work: Path) -> dict:
     procs = {}
     for label in labels:
-        cmd = [sys.executable, __file__, "train-one", "--config", args.config, "--preset", args.preset,
-               "--threads", str(args.threads), "--stop-at", str(stop_at), label]
+        cmd = [sys.executable, str(ROOT / "scripts" / "gpu.py"), "train-one", "--config", args.config,
+               "--preset", args.preset, "--threads", str(args.threads), "--stop-at", str(stop_at), label]
         cmd += ["--run-dir", args.run_dir] if args.run_dir else []
         cmd += ["--data", args.data] if args.data else []
         cmd += ["--stop-after-epochs", str(args.stop_after_epochs)] if args.stop_after_epochs is not None else []
@@ -345,13 +333,14 @@ def return_runs(cfg, args, todo: list[str], ended: dict, resumed: dict, data_has
         log(f"{label}: {entry}; log tail: "
             + " | ".join((work / f"{label}.log").read_text().strip().splitlines()[-2:]))
     staged.sort(key=lambda s: report["runs"][s[0]]["state"] != "finished")  # finished runs first
-    packed, left = pack(staged, out, work, int(args.return_mib * 2**20))
+    report["pack"] = pack(staged, out, work, int(args.return_mib * 2**20))
+    packed = [c["name"] for c in report["pack"]["contents"]]
     for label in packed:
         report["runs"][label]["packed"] = True
-    for label in left:
+    for label in report["pack"]["left_out"]:
         report["runs"][label]["note"] = f"not returned: the trip back holds {args.return_mib} MiB"
     report["elapsed_s"] = round(time.monotonic() - start, 1)
-    (out / "gpu_reproduce.json").write_text(json.dumps(report, indent=1) + "\n")
+    (out / REPORT).write_text(json.dumps(report, indent=1) + "\n")
     log(f"packed {len(packed)}/{len(todo)} runs in {report['elapsed_s']} s")
     return 0 if len(packed) == len(todo) else 1
 
@@ -360,7 +349,7 @@ def train(args: argparse.Namespace) -> int:
     start = time.monotonic()
     out, work = Path(args.out), Path(args.work)
     out.mkdir(parents=True, exist_ok=True)
-    for stale in [*out.glob("runs.tar.[0-9][0-9][0-9]"), out / "gpu_reproduce.json"]:
+    for stale in [*out.glob("runs.tar.[0-9][0-9][0-9]"), out / REPORT]:
         stale.unlink(missing_ok=True)  # unpack joins every piece it finds
     shutil.rmtree(work / "stage", ignore_errors=True)
     work.mkdir(parents=True, exist_ok=True)
@@ -376,7 +365,7 @@ def train(args: argparse.Namespace) -> int:
     error = report.get("error") or (data_hash and wrong_data(resumed, data_hash))
     if error:
         report["error"] = error
-        (out / "gpu_reproduce.json").write_text(json.dumps(report, indent=1) + "\n")
+        (out / REPORT).write_text(json.dumps(report, indent=1) + "\n")
         log(error + ": nothing trained")
         return 1
     resumed = {k: v for k, v in resumed.items() if not (run_dir(cfg, k) / "done.json").exists()}
@@ -407,24 +396,15 @@ def returned_hash(run: Path) -> str | None:
         return (json.loads((run / "done.json").read_text()).get("trained_on") or {}).get("dataset_hash")
     if (run / MARKER).exists():
         return json.loads((run / MARKER).read_text()).get("dataset_hash")
-    raise SystemExit(f"{run}: neither done.json nor {MARKER}; not a run packed by gpu_reproduce.py train")
+    raise SystemExit(f"{run}: neither done.json nor {MARKER}; not a run packed by scripts/gpu.py train")
 
 
 def extract_returned(src: Path, tmp: Path) -> None:
-    """The returned runs, joined from their pieces and unpacked (safely) into the scratch folder ``tmp``."""
-    from scripts.gpu_slots import safe_extract
+    """The returned runs, joined from their pieces, checked against the report's manifest and unpacked (safely)
+    into the scratch folder ``tmp``."""
+    from scripts.gpu_pack import fresh_dir, unpack
 
-    pieces = sorted(src.glob("runs.tar.[0-9][0-9][0-9]"))
-    if not pieces:
-        raise SystemExit(f"{src}: no runs.tar.NNN pieces")
-    shutil.rmtree(tmp, ignore_errors=True)
-    tmp.mkdir(parents=True)
-    tar_path = tmp / "runs.tar"
-    with open(tar_path, "wb") as f:
-        for piece in pieces:
-            f.write(piece.read_bytes())
-    safe_extract(tar_path, tmp)
-    tar_path.unlink()
+    unpack(src, "runs", fresh_dir(tmp), REPORT)
 
 
 def place_finished(run: Path, dst: Path) -> None:
@@ -544,24 +524,18 @@ def status(args: argparse.Namespace) -> int:
         carried = [carry_path(run_dir(cfg, label)) for label in carry]
         if any(Path(c).is_absolute() for c in carried):
             print("  (outside the repository: the device tool carries only paths inside it)")
-        print(f"  carry: {json.dumps(carried)}\n  command: python3 scripts/gpu_reproduce.py train "
+        print(f"  carry: {json.dumps(carried)}\n  command: python3 scripts/gpu.py train "
               f"--preset {cfg.preset} --out $OUT --expect-data-hash {data_hash}"
               + (f" --resume-from {' '.join(carried)}" if carried else "")
               + (f" --runs {' '.join(fresh)}" if fresh else ""))
     return 0
 
 
-def main(argv: list[str] | None = None) -> int:
-    from vitfly.errors import VitflyError
-
-    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    sub = parser.add_subparsers(dest="command", required=True)
-    for name in ("train", "train-one", "unpack", "status"):
-        p = sub.add_parser(name)
-        p.add_argument("--config", default="configs/reproduce.yaml")
-        p.add_argument("--preset", required=True)
-        p.add_argument("--run-dir", help="the preset's run directory (vitfly reproduce --out)")
-        p.add_argument("--data", help="the preset's dataset (vitfly reproduce --data)")
+def add_commands(sub) -> dict:
+    """``train``, ``train-one`` and ``status`` on ``scripts/gpu.py``'s subparsers; returns name -> handler
+    (``unpack`` takes the preset flags too: its runs are the pieces ``runs.tar.NNN``)."""
+    for name in ("train", "train-one", "status"):
+        preset_flags(sub.add_parser(name, help=COMMAND_HELP[name]), required=True)
     t = sub.choices["train"]
     t.add_argument("--out", required=True, help="what comes back: runs.tar.NNN and gpu_reproduce.json")
     t.add_argument("--work", default="/tmp/vitfly-gpu-reproduce", help="logs and packing")
@@ -583,12 +557,26 @@ def main(argv: list[str] | None = None) -> int:
     one.add_argument("--stop-after-epochs", type=int)
     one.add_argument("--epoch-s", type=float, help="expected epoch length until one is measured")
     one.add_argument("train_one", metavar="LABEL")
-    sub.choices["unpack"].add_argument("dir", help="the folder holding runs.tar.NNN")
-    args = parser.parse_args(argv)
-    try:
-        return {"train": train, "train-one": train_one, "unpack": unpack, "status": status}[args.command](args)
-    except VitflyError as err:
-        raise SystemExit(str(err)) from None
+    return {"train": train, "train-one": train_one, "status": status}
+
+
+COMMAND_HELP = {"train": "there: collect a preset's data, train named runs until the deadline, pack them",
+                "train-one": "there: one run (a child process of train)",
+                "status": "here: every run of a preset, and what the next slot carries"}
+
+
+def preset_flags(p: argparse.ArgumentParser, required: bool) -> None:
+    p.add_argument("--config", default="configs/reproduce.yaml")
+    p.add_argument("--preset", required=required)
+    p.add_argument("--run-dir", help="the preset's run directory (vitfly reproduce --out)")
+    p.add_argument("--data", help="the preset's dataset (vitfly reproduce --data)")
+
+
+def main(argv: list[str] | None = None) -> int:
+    """The old command line: ``scripts/gpu_reproduce.py ARGS`` is ``scripts/gpu.py ARGS``."""
+    from scripts.gpu import main as gpu_main
+
+    return gpu_main(sys.argv[1:] if argv is None else argv)
 
 
 if __name__ == "__main__":

@@ -1,5 +1,5 @@
-"""Resume states of runs that ``scripts/gpu_reproduce.py`` trains across GPU slots: what travels, and how it is
-checked and put back in place.
+"""Resume states of runs that ``scripts/gpu.py train`` trains across GPU slots: what travels, and how it is
+checked and put back in place (packing and unpacking: ``scripts/gpu_pack.py``).
 
 An unfinished run travels as its run directory: ``checkpoints/last.ckpt`` (the Lightning checkpoint of its last
 finished epoch: fp32 weights, the Adam moments, loop and callback state, the random generators' state),
@@ -15,11 +15,12 @@ import csv
 import json
 import os
 import shutil
-import tarfile
 import time
 from pathlib import Path
 
 from lightning.pytorch.callbacks import Callback
+
+from scripts.gpu_pack import safe_extract, tree_bytes  # noqa: F401  (one unpacking path; the tests call it here)
 
 MARKER = "unfinished.json"
 EARLIER_METRICS = "metrics.earlier.csv"  # earlier slots' rows: Lightning's CSVLogger empties metrics.csv on resume
@@ -132,7 +133,7 @@ def read_marker(run_dir: Path) -> dict:
         raise SystemExit(f"{path}: not a readable resume marker ({err})") from None
     for key in ("label", "preset", "dataset_hash", "epochs", "slots"):
         if key not in marker:
-            raise SystemExit(f"{path}: field {key!r} missing; expected a marker written by gpu_reproduce.py")
+            raise SystemExit(f"{path}: field {key!r} missing; expected a marker written by scripts/gpu.py train")
     return marker
 
 
@@ -166,36 +167,8 @@ def set_metrics_aside(run_dir: Path) -> None:
         current.unlink()
 
 
-def tree_bytes(path: Path) -> int:
-    return sum(p.stat().st_size for p in path.rglob("*") if p.is_file())
-
-
 def mib(n: int) -> str:
     return f"{n / 2**20:.1f} MiB"
-
-
-def check_member(member: tarfile.TarInfo, tar_path: Path) -> None:
-    """Refuse what the 'data' filter refuses and more: absolute or '..' paths, links, devices, fifos."""
-    parts = Path(member.name).parts
-    if member.name.startswith(("/", "\\")) or Path(member.name).is_absolute() or ".." in parts:
-        raise SystemExit(f"{tar_path}: member {member.name!r} points outside the folder it unpacks into")
-    if not (member.isfile() or member.isdir()):
-        raise SystemExit(f"{tar_path}: member {member.name!r} is a link or special file; expected files and folders")
-
-
-def safe_extract(tar_path: Path, dest: Path) -> None:
-    """Unpack ``tar_path`` into ``dest`` and nowhere else, on every Python >= 3.10: every member checked here
-    first, then tarfile's 'data' filter where it exists (3.10.12, 3.11.4, 3.12; not Debian bookworm's 3.11.2)."""
-    with tarfile.open(tar_path) as tar:
-        members = tar.getmembers()
-        for member in members:
-            check_member(member, tar_path)
-        if hasattr(tarfile, "data_filter"):
-            tar.extractall(dest, members=members, filter="data")
-            return
-        for member in members:
-            member.mode &= 0o755  # what the filter would do: no set-uid, set-gid or world-writable bits
-        tar.extractall(dest, members=members)
 
 
 def copy_run(src: Path, dst: Path) -> None:

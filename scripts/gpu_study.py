@@ -1,6 +1,9 @@
 """Train the paper's networks side by side on one GPU machine inside one time-boxed command.
 
-    python3 scripts/gpu_study.py --config scripts/gpu_study.yaml --out DIR [--work /tmp/vitfly-study]
+    python3 scripts/gpu.py study --config scripts/gpu_study.yaml --out DIR [--work /tmp/vitfly-study]
+    python3 scripts/gpu.py unpack DIR --into runs/gpu_study        # here: end/, middle/, logs/
+
+(``scripts/gpu_study.py ARGS``, the old command line, is ``scripts/gpu.py study ARGS``.)
 
 Stages, each shrunk to fit ``deadline_s`` (the device tool kills a command after 10 minutes):
 
@@ -13,10 +16,10 @@ Stages, each shrunk to fit ``deadline_s`` (the device tool kills a command after
 5. each run's last epoch (and, for ``publish.middle_for``, its middle epoch) published as fp16
    safetensors with a manifest (``vitfly.zoo.save_pretrained``) and packed for the trip back.
 
-DIR receives ``study.json`` (what ran, how long, frames/s), ``run.log`` and ``study.tar.NNN`` (the
-weights, metrics.csv of every run, the benchmark table), split in pieces the device tool returns.
-``cat DIR/study.tar.* | tar x`` unpacks ``end/``, ``middle/`` (weights directories: ``VITFLY_WEIGHTS_DIR``)
-and ``logs/``. On the device machine, first ``scripts/gpu_machine.sh`` installs the wheels it lacks.
+DIR receives ``study.json`` (what ran, how long, frames/s, and the manifest of the pieces), ``run.log`` and
+``study.tar.NNN`` (the weights, metrics.csv of every run, the benchmark table; ``scripts/gpu_pack.py``).
+``scripts/gpu.py unpack`` unpacks ``end/``, ``middle/`` (weights directories: ``VITFLY_WEIGHTS_DIR``) and
+``logs/``. On the device machine, ``scripts/gpu.py`` first installs the wheels it lacks (``.whl/``, carried).
 """
 
 from __future__ import annotations
@@ -27,14 +30,14 @@ import os
 import shutil
 import subprocess
 import sys
-import tarfile
 import time
 from pathlib import Path
 
 import yaml
 
 ROOT = Path(__file__).resolve().parent.parent
-PIECE_BYTES = 15 * 2**20  # the device tool returns files of at most 16 MiB
+sys.path.insert(0, str(ROOT))
+REPORT = "study.json"  # what ran, how long, and the manifest of study.tar.NNN
 
 
 class Clock:
@@ -229,35 +232,36 @@ def publish(cfg: dict, data: Path, work: Path, pub: Path, fit: dict) -> dict:
     return published
 
 
-def pack(out: Path, pub: Path, work: Path, logs: Path) -> list[str]:
+def pack(out: Path, pub: Path, work: Path, logs: Path) -> dict:
+    """The published weights and the logs as ``out/study.tar.NNN`` (``scripts/gpu_pack.py``); the manifest."""
+    from scripts.gpu_pack import pack as pack_pieces
+
     for metrics in (work / "runs").glob("*/version_*/metrics.csv"):
         shutil.copy(metrics, logs / f"metrics_{metrics.parent.parent.name}.csv")
-    tar_path = work / "study.tar"
-    with tarfile.open(tar_path, "w") as tar:
-        for folder in (pub / "end", pub / "middle", logs):
-            if folder.exists():
-                tar.add(folder, arcname=folder.name)
-    return write_pieces(tar_path, out)
+    folders = [(folder.name, folder) for folder in (pub / "end", pub / "middle", logs) if folder.exists()]
+    return pack_pieces(folders, out, "study", work)
 
 
-def write_pieces(path: Path, out: Path) -> list[str]:
-    """``path`` split into ``out/<name>.NNN`` files the device tool returns (``cat`` joins them)."""
-    pieces = []
-    with open(path, "rb") as f:
-        for i, block in enumerate(iter(lambda: f.read(PIECE_BYTES), b"")):
-            piece = out / f"{path.name}.{i:03d}"
-            piece.write_bytes(block)
-            pieces.append(piece.name)
-    return pieces
+def unpack(src: Path, into: Path) -> None:
+    """Here: ``end/``, ``middle/`` (weights directories: ``VITFLY_WEIGHTS_DIR``) and ``logs/`` into ``into``."""
+    from scripts.gpu_pack import unpack as unpack_pieces
+
+    manifest = unpack_pieces(src, "study", into, REPORT)
+    names = ", ".join(f"{c['name']}/" for c in manifest["contents"]) if manifest else "the pieces"
+    print(f"{into}: {names} unpacked")
 
 
-def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--config", default="scripts/gpu_study.yaml")
-    parser.add_argument("--out", required=True, help="folder for what comes back (study.json, run.log, pieces)")
-    parser.add_argument("--work", default="/tmp/vitfly-study", help="dataset, runs and checkpoints (stay there)")
-    parser.add_argument("--skip", nargs="*", default=[], choices=["benchmark", "eval"], help="stages to skip")
-    args = parser.parse_args(argv)
+def add_commands(sub) -> dict:
+    """``study`` on ``scripts/gpu.py``'s subparsers; returns name -> handler."""
+    p = sub.add_parser("study", help="there: the shipped weights' study (scripts/gpu_study.yaml), packed")
+    p.add_argument("--config", default="scripts/gpu_study.yaml")
+    p.add_argument("--out", required=True, help="folder for what comes back (study.json, run.log, pieces)")
+    p.add_argument("--work", default="/tmp/vitfly-study", help="dataset, runs and checkpoints (stay there)")
+    p.add_argument("--skip", nargs="*", default=[], choices=["benchmark", "eval"], help="stages to skip")
+    return {"study": study}
+
+
+def study(args: argparse.Namespace) -> int:
     cfg = yaml.safe_load(Path(args.config).read_text())
     clock = Clock(cfg["deadline_s"])
     out, work = Path(args.out), Path(args.work)
@@ -274,7 +278,7 @@ def main(argv: list[str] | None = None) -> int:
 
     def save() -> None:
         study["elapsed_s"] = round(clock.elapsed(), 1)
-        (out / "study.json").write_text(json.dumps(study, indent=2, default=str) + "\n")
+        (out / REPORT).write_text(json.dumps(study, indent=2, default=str) + "\n")
 
     try:
         study["stages"]["collect"] = collect(cfg, data, logs, clock)
@@ -292,10 +296,17 @@ def main(argv: list[str] | None = None) -> int:
     finally:
         save()
         shutil.copy(out / "study.json", logs / "study.json")
-        study["pieces"] = pack(out, pub, work, logs)
+        study["pack"] = pack(out, pub, work, logs)
         save()
-        log(f"done in {clock.elapsed():.0f} s: {', '.join(study['pieces'])}")
+        log(f"done in {clock.elapsed():.0f} s: {', '.join(p['file'] for p in study['pack']['pieces'])}")
     return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    """The old command line: ``scripts/gpu_study.py ARGS`` is ``scripts/gpu.py study ARGS``."""
+    from scripts.gpu import main as gpu_main
+
+    return gpu_main(["study", *(sys.argv[1:] if argv is None else argv)])
 
 
 if __name__ == "__main__":
