@@ -8,8 +8,9 @@ There (the batched policy on the card, the simulator on the machine's 16 cores):
 Everything after ``--`` goes to ``vitfly evaluate`` as it is, but ``--out`` (the sweep is flown into
 ``--work``/eval) and ``--device`` (``cuda`` where there is one, unless given). A checkpoint policy travels with
 the call (the device tool's ``carry``); ``pretrained:NAME`` is in the tree already. The sweep is stopped at
-``--deadline-s``: its trials are appended one by one as they finish, so what was flown comes back and a later
-sweep with the same flags flies only the rest. The records and reports (``trials*.jsonl``, ``summary.*``,
+``--deadline-s``: its trials are appended one by one as they finish, so what was flown comes back (a later
+slot flies the sweep from its start again unless its ``--work`` holds the records; merged here, each trial is
+kept once). The records and reports (``trials*.jsonl``, ``summary.*``,
 ``paired.csv``; no plots or GIFs) and the log go into ``eval.tar.NNN``; ``gpu_evaluate.json`` says what ran and
 holds the pieces' manifest.
 
