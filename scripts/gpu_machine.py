@@ -118,7 +118,7 @@ def pipeline(args: argparse.Namespace) -> int:
     stage = fresh_dir(work / "stage")
     if (run / "pipeline.json").exists():
         outcome = json.loads((run / "pipeline.json").read_text())
-        report.update(timings_s=outcome.get("timings_s"), success_rate=outcome.get("success_rate"))
+        report.update({k: outcome.get(k) for k in ("timings_s", "success_paper", "success_strict")})
         shutil.copy(run / "pipeline.json", stage / "pipeline.json")
     copy_records(run / "eval", stage / "eval")
     entries = [(p.name, p) for p in sorted(stage.iterdir())]
@@ -127,8 +127,9 @@ def pipeline(args: argparse.Namespace) -> int:
     t = report.get("timings_s") or {}
     print(f"whole command {report['elapsed_s']:.0f} s; pipeline rc {rc}: "
           + ", ".join(f"{k.removesuffix('_s')} {v:.0f} s" for k, v in t.items()))
-    if report.get("success_rate"):
-        print("success: " + ", ".join(f"{k} {100 * v:.0f} %" for k, v in sorted(report["success_rate"].items())))
+    rates = report.get("success_paper") or {}
+    if rates:
+        print("success (paper): " + ", ".join(f"{k} {100 * v:.0f} %" for k, v in sorted(rates.items())))
     return rc
 
 
