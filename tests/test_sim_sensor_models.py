@@ -58,7 +58,7 @@ def test_ranges_invalid_and_deployment_values():
     assert np.isnan(out[:30]).all() and np.isfinite(out[30:]).all()
     image = sensor.image(depth, 1, 0)
     assert np.all(image[:30] == np.float32(0.8))  # the original's fixed value for no depth
-    assert abs(float(image[30:].mean()) - 0.8 * 5.0 / 10.0) < 0.005 and image[30:].max() < 0.5  # clip(z / 10, 0, 1.25) * 0.8
+    assert abs(float(image[30:].mean()) - 0.8 * 5.0 / 10.0) < 0.005 and image[30:].max() < 0.5  # 0.8 z / 10
 
 
 def test_step_edge_invalid_band_has_predicted_width_on_the_left_of_the_near_surface():

@@ -243,7 +243,8 @@ def run_episodes(
     sensing = None
     if cfg.sensor is not None:  # (model, per-env seed, per-env frame delay)
         seeds = [int(camera_seed if camera_seed is not None else s.seed) for s in scenes]
-        sensing = (StereoDepthSensor(cfg.sensor, cfg.camera), seeds, [FrameDelay(cfg.sensor.delay_ticks) for _ in scenes])
+        delays = [FrameDelay(cfg.sensor.delay_ticks) for _ in scenes]
+        sensing = (StereoDepthSensor(cfg.sensor, cfg.camera), seeds, delays)
     envs = [_EnvTracker(s, v, cfg) for s, v in zip(scenes, speeds, strict=True)]
     speed_arr = np.array([e.speed for e in envs])
     results: list[EpisodeResult | None] = [None] * n
@@ -301,7 +302,8 @@ def run_episodes(
     return results  # type: ignore[return-value]
 
 
-def _observe(states, envs, active, speed_arr, time_s, tick, camera, rngs, needs_depth, cfg, sensing=None) -> Observation:
+def _observe(states, envs, active, speed_arr, time_s, tick, camera, rngs, needs_depth, cfg,
+             sensing=None) -> Observation:
     n = len(envs)
     position = np.array([s.position for s in states])
     quat = np.array([s.quat for s in states])

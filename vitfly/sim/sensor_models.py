@@ -95,7 +95,8 @@ class StereoDepthConfig:
         choices = {"model": SENSOR_MODELS, "propellers": PROPELLER_CORNERS, "propeller_reads": PROPELLER_READS}
         for name, allowed in choices.items():
             if getattr(self, name) not in allowed:
-                raise ValueError(f"field {prefix}{name} is {getattr(self, name)!r}; expected one of {', '.join(allowed)}")
+                value = getattr(self, name)
+                raise ValueError(f"field {prefix}{name} is {value!r}; expected one of {', '.join(allowed)}")
         positive = ("baseline_m", "stream_width_px", "stream_height_px", "disparity_step_px", "max_range_m",
                     "deploy_scale")
         for name in positive:
