@@ -144,6 +144,30 @@ def sensor_from_dict(values: Mapping[str, Any] | None, prefix: str = "sensor.") 
     return StereoDepthConfig(**values).validate(prefix)
 
 
+def sensor_flag_values(tokens: list[str] | None) -> dict[str, Any] | None:
+    """``--sensor MODEL [FIELD=VALUE ...]`` as plain values (values read as YAML); None when not given.
+
+    ``["d435", "delay_ticks=1"]`` -> ``{"model": "d435", "delay_ticks": 1}``; ``["none"]`` -> ``{"model": "none"}``.
+    Raises ValueError (one line) for a token that is neither."""
+    if not tokens:
+        return None
+    import yaml
+
+    values: dict[str, Any] = {}
+    for i, token in enumerate(tokens):
+        name, sep, text = token.partition("=")
+        if not sep:
+            if i:
+                raise ValueError(f"--sensor: expected FIELD=VALUE after the model, got {token!r}")
+            values["model"] = token
+            continue
+        try:
+            values[name.strip()] = yaml.safe_load(text)
+        except yaml.YAMLError:
+            raise ValueError(f"--sensor: cannot read the value of {token!r}") from None
+    return values
+
+
 def sensor_dict(config: StereoDepthConfig | None) -> dict[str, Any] | None:
     """Plain JSON-able values of a sensor model (None for the ideal camera)."""
     return None if config is None else dataclasses.asdict(config)
@@ -245,4 +269,4 @@ class FrameDelay:
 
 
 __all__ = ["FrameDelay", "SENSOR_MODELS", "StereoDepthConfig", "StereoDepthSensor", "occlusion_mask",
-           "propeller_mask", "sensor_dict", "sensor_from_dict"]
+           "propeller_mask", "sensor_dict", "sensor_flag_values", "sensor_from_dict"]
