@@ -14,7 +14,7 @@ import yaml
 from vitfly.errors import VitflyError
 from vitfly.packaged import config_path
 
-ENVS = ("spheres", "trees", "window")
+ENVS = ("spheres", "trees", "window", "course")
 # inference back ends of learned policies: eager PyTorch, ONNX Runtime float32, ONNX Runtime with int8 products
 BACKENDS = ("eager", "compiled", "onnxruntime", "onnxruntime-int8")  # compiled: eager with torch.compile
 
