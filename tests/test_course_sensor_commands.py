@@ -16,7 +16,8 @@ def test_one_trial_evaluate_in_the_course_flies(tmp_path, capsys):
             "--no-gif", "--no-plots", "--no-progress", "--sensor", "d435", "delay_ticks=1"]
     assert main(args) == 0
     (record,) = [json.loads(line) for line in (out / "trials.jsonl").read_text().splitlines()]
-    assert record["env"] == "course" and record["outcome"]["end_reason"] == "goal" and record["outcome"]["success_strict"]
+    outcome = record["outcome"]
+    assert record["env"] == "course" and outcome["end_reason"] == "goal" and outcome["success_strict"]
     assert record["extra"]["scene"]["env"] == "course"
     assert record["path"]["end"]["position"][0] >= 60.0  # through the arena to the task's goal
 
