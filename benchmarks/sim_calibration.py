@@ -21,7 +21,7 @@ import time
 
 import numpy as np
 
-from vitfly.sim import ENVS, PRESETS, ExpertPolicy, make_builtin_policy, make_scene, run_episodes
+from vitfly.sim import ENVS, ExpertPolicy, make_builtin_policy, make_scene, run_episodes
 from vitfly.sim.expert import ALL_SEEING
 
 
@@ -38,7 +38,7 @@ def wilson_interval(successes: int, n: int, z: float = 1.96) -> tuple[float, flo
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--env", choices=ENVS, default="spheres")
-    parser.add_argument("--preset", choices=PRESETS, default="medium")
+    parser.add_argument("--preset", default="medium", help="easy, medium, hard (course also: single, gap, multi)")
     parser.add_argument("--speed", type=float, nargs="+", default=[3.0], help="desired speeds, m/s")
     parser.add_argument("--trials", type=int, default=100)
     parser.add_argument(

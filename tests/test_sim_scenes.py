@@ -127,3 +127,55 @@ def test_bad_scene_files_give_one_line_errors(tmp_path):
         make_scene("forest", "medium", 0)
     with pytest.raises(VitflyError, match="unknown preset"):
         make_scene("spheres", "extreme", 0)
+
+
+@pytest.mark.parametrize("preset", ["single", "gap", "multi", "medium"])
+def test_course_is_seeded_and_stands_in_the_arena(preset):
+    a = make_scene("course", preset, 4)
+    assert a.equals(make_scene("course", preset, 4)) and not a.equals(make_scene("course", preset, 5))
+    assert len(a.spheres) == 0 and a.num_obstacles >= 1
+    assert np.all(a.cylinders[:, 2] == 0) and np.all(a.boxes[:, 2] == 0)  # free-standing on the floor
+    cfg = PRESET_CONFIGS["course"][preset]
+    xs = np.concatenate([a.cylinders[:, 0], (a.boxes[:, 0] + a.boxes[:, 3]) / 2])
+    assert np.all((xs >= cfg.obstacle_x[0]) & (xs <= cfg.obstacle_x[1]))
+
+
+def _course_sites(scene):
+    """(y_lo, y_hi) of each obstacle of a course scene."""
+    cyl = [(y - r, y + r) for _, y, _, _, r in scene.cylinders]
+    return cyl + [(b[1], b[4]) for b in scene.boxes]
+
+
+@pytest.mark.parametrize("seed", range(8))
+def test_course_layouts(seed):
+    single = make_scene("course", "single", seed)
+    assert single.num_obstacles == 1
+    (lo, hi), = _course_sites(single)
+    assert lo < 0 < hi  # on the start line: flying straight meets it
+    gap = make_scene("course", "gap", seed)
+    (a_lo, a_hi), (b_lo, b_hi) = sorted(_course_sites(gap))
+    assert 1.6 <= b_lo - a_hi <= 2.4  # a passable gap between the two surfaces
+    assert (a_lo < 0 < a_hi) or (b_lo < 0 < b_hi)  # beside the line: one of them stands on it
+    multi = make_scene("course", "multi", seed)
+    assert 3 <= multi.num_obstacles <= 6 and len(multi.cylinders) + len(multi.boxes) == multi.num_obstacles
+    assert np.all(multi.boxes[:, 1] >= -4) and np.all(multi.boxes[:, 4] <= 4)
+    assert np.all(np.abs(multi.cylinders[:, 1]) + multi.cylinders[:, 4] <= 4 + 1e-9)
+
+
+def test_course_shapes_reach_the_expert():
+    scene = make_scene("course", "multi", 1)
+    spheres, objects, lo, hi = scene.expert_objects()
+    assert len(lo) == scene.num_obstacles == len(np.unique(objects))
+    for x, y, z0, z1, r in scene.cylinders:  # every cylinder is covered along its height
+        near = spheres[np.hypot(spheres[:, 0] - x, spheres[:, 1] - y) < 1e-9]
+        assert len(near) and near[:, 2].min() < z0 + 0.5 and near[:, 2].max() > z1 - 0.5 and near[0, 3] >= r
+    for box in scene.boxes:
+        centre = (box[:3] + box[3:]) / 2
+        assert signed_distances(centre, scene).min() < 0
+        inside = np.all((spheres[:, :3] >= box[:3]) & (spheres[:, :3] <= box[3:]), axis=1)
+        assert inside.sum() >= 1
+
+
+def test_course_bad_preset_names_the_course_presets():
+    with pytest.raises(VitflyError, match="single, gap, multi"):
+        make_scene("course", "dense", 0)

@@ -5,8 +5,10 @@ from __future__ import annotations
 import argparse
 
 from vitfly.datamodules.schema import DEPTH_STORAGE
+from vitfly.errors import VitflyError
 from vitfly.sim.collect import CollectConfig, collect, load_collect_config
 from vitfly.sim.physics import PHYSICS_CHOICES
+from vitfly.sim.sensor_models import sensor_flag_values
 
 _DEFAULTS = CollectConfig()
 
@@ -65,12 +67,19 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="rigid-body physics back end, stored with the dataset: pybullet (the reference), native (numpy, same "
         f"results to rounding) or auto, pybullet where installed (YAML, else {_DEFAULTS.physics})",
     )
+    parser.add_argument("--sensor", nargs="+", metavar="MODEL|FIELD=VALUE", default=keep,
+                        help="stereo sensor model on the rendered depth, e.g. --sensor d435 delay_ticks=1 "
+                        "(vitfly.sim.sensor_models; YAML sensor: {model: d435, ...}; none: the ideal camera)")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
 
 
 def run(args: argparse.Namespace) -> int:
     flags = ("trajectories", "speeds", "seed", "workers", "depth_compression", "log_every_tick", "physics")
     overrides = {name: getattr(args, name, None) for name in flags}
+    try:
+        overrides["sensor"] = sensor_flag_values(getattr(args, "sensor", None))
+    except ValueError as err:
+        raise VitflyError(str(err)) from None
     config = load_collect_config(getattr(args, "config", None), overrides)
     summary = collect(config, args.out, progress=not args.no_progress)
     total_ok = sum(s for s, _ in summary.success_by_speed.values())

@@ -48,6 +48,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--depth-max-m", type=float, help="depth range, m (default: the checkpoint's)")
     parser.add_argument("--override-sensor", action="store_true", default=None,
                         help="fly with --camera/--control-hz/--depth-max-m even where they contradict the checkpoint")
+    parser.add_argument("--sensor", nargs="+", metavar="MODEL|FIELD=VALUE",
+                        help="stereo sensor model on the rendered depth, e.g. --sensor d435 delay_ticks=1 "
+                             "(vitfly.sim.sensor_models; none: the ideal camera, the default)")
     parser.add_argument("--no-gif", action="store_true", help="skip the depth GIF with the command arrow")
     parser.add_argument("--no-plots", action="store_true", help="skip the plots")
     parser.add_argument("--wandb-project", help="also log the summary and plots to this wandb project")
@@ -71,16 +74,22 @@ def _camera_setting(text: str) -> tuple[str, object]:
 
 
 def run(args: argparse.Namespace) -> int:
+    from vitfly.errors import VitflyError
     from vitfly.eval.evaluation import merge_into, run_evaluation, write_outputs
     from vitfly.eval.policy_source import PolicySource
     from vitfly.eval.report import print_table
     from vitfly.eval.sensor import resolve_sensor
+    from vitfly.sim.sensor_models import sensor_flag_values
 
     overrides = {k: getattr(args, k) for k in ("policy", "arch", "name", "env", "preset", "speeds", "trials", "seed",
                                               "out", "num_envs", "workers", "shard", "device", "threads",
                                               "backend", "physics", "timeout_s", "wandb_project", "control_hz",
                                               "depth_max_m", "override_sensor")}
     overrides["camera"] = dict(args.camera) if args.camera else None
+    try:
+        overrides["sensor"] = sensor_flag_values(args.sensor)
+    except ValueError as err:
+        raise VitflyError(str(err)) from None
     overrides["gif"] = False if args.no_gif else None
     overrides["plots"] = False if args.no_plots else None
     overrides["overwrite"] = True if args.overwrite else None

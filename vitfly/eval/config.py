@@ -14,7 +14,7 @@ import yaml
 from vitfly.errors import VitflyError
 from vitfly.packaged import config_path
 
-ENVS = ("spheres", "trees", "window")
+ENVS = ("spheres", "trees", "window", "course")
 # inference back ends of learned policies: eager PyTorch, ONNX Runtime float32, ONNX Runtime with int8 products
 BACKENDS = ("eager", "compiled", "onnxruntime", "onnxruntime-int8")  # compiled: eager with torch.compile
 
@@ -45,6 +45,8 @@ class SweepConfig:
     camera: dict | None = None  # CameraConfig fields, e.g. {vertical_fov_deg: 70}, or {preset: camera_config_yaml}
     control_hz: float | None = None  # policy and camera rate, Hz
     depth_max_m: float | None = None  # depth range: normalised depth 1 = this many metres
+    # a stereo sensor model on the rendered depth (vitfly.sim.sensor_models), e.g. {model: d435, delay_ticks: 1}
+    sensor: dict | None = None
     override_sensor: bool = False  # fly with the settings above even where they contradict the checkpoint's
     gif: bool = True  # re-fly one trial with depth frames and write a GIF with the command arrow
     plots: bool = True
@@ -67,6 +69,12 @@ class SweepConfig:
             if value is not None and not value > 0:
                 raise VitflyError(f"{source}: field {name!r} must be a positive number, got {value}")
         parse_shard(self.shard, source)
+        from vitfly.sim.sensor_models import sensor_from_dict
+
+        try:
+            sensor_from_dict(self.sensor)
+        except ValueError as err:
+            raise VitflyError(f"{source}: {err}") from None
         from vitfly.sim.physics import resolve_physics
 
         self.physics = resolve_physics(self.physics, f"{source}: field 'physics'")

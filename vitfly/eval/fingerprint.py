@@ -87,8 +87,12 @@ def policy_fingerprint(source) -> str:
 
 
 def rollout_fingerprint(rollout_config) -> str:
-    """``rollout_id`` of a :class:`vitfly.sim.rollout.RolloutConfig`; ``record_depth`` (logging only) is left out."""
-    return digest(dataclasses.replace(rollout_config, record_depth=False))
+    """``rollout_id`` of a :class:`vitfly.sim.rollout.RolloutConfig`; ``record_depth`` (logging only) is left out,
+    and so is an unset ``sensor`` (the ideal camera), so that trials from before sensor models keep their key."""
+    plain = _plain(dataclasses.replace(rollout_config, record_depth=False))
+    if plain.get("sensor", 0) is None:
+        del plain["sensor"]
+    return digest(plain)
 
 
 def scene_fingerprint(env: str, preset: str) -> str:

@@ -106,11 +106,12 @@ def rollout_config(cfg: SweepConfig, record_depth: bool = False):
     from vitfly.eval.sensor import flight_sensor
     from vitfly.sim.physics import resolve_physics
     from vitfly.sim.rollout import RolloutConfig, TaskConfig
+    from vitfly.sim.sensor_models import sensor_from_dict
 
     task = TaskConfig() if cfg.timeout_s is None else TaskConfig(timeout_s=cfg.timeout_s, timeout_speed_factor=0.0)
     camera, control_hz = flight_sensor(cfg)
     return RolloutConfig(task=task, record_depth=record_depth, camera=camera, control_hz=control_hz,
-                         physics=resolve_physics(cfg.physics))
+                         physics=resolve_physics(cfg.physics), sensor=sensor_from_dict(cfg.sensor))
 
 
 def policy_source(cfg: SweepConfig) -> PolicySource:

@@ -48,6 +48,7 @@ from vitfly.sim.physics import resolve_physics
 from vitfly.sim.policies import ExpertPolicy
 from vitfly.sim.rollout import RolloutConfig, TaskConfig, run_episodes
 from vitfly.sim.scenes import ENVS, make_scene, scene_config
+from vitfly.sim.sensor_models import StereoDepthConfig, sensor_from_dict
 
 
 @dataclass(frozen=True)
@@ -71,6 +72,8 @@ class CollectConfig:
     log_x_range_m: tuple[float, float] = (2.0, 60.0)
     log_every_tick: bool = False
     physics: str = "auto"  # "pybullet", "native" or "auto"; stored concrete (resolve_physics) with the data
+    # a stereo sensor model on the camera's render (YAML ``sensor: {model: d435, ...}``, flag --sensor); None: ideal
+    sensor: StereoDepthConfig | None = None
 
     def validate(self, source: str = "config") -> CollectConfig:
         if self.env not in ENVS:
@@ -111,6 +114,7 @@ class CollectConfig:
             camera=self.camera,
             record_depth=True,
             physics=self.physics,
+            sensor=self.sensor,
         )
 
     def content_key(self) -> dict:
@@ -121,6 +125,8 @@ class CollectConfig:
         d["speeds"] = list(d["speeds"])
         d["log_x_range_m"] = list(d["log_x_range_m"])
         d["camera"]["mount_offset_m"] = list(d["camera"]["mount_offset_m"])
+        if d["sensor"] is None:  # the ideal camera: the key of files from before sensor models
+            d.pop("sensor")
         return d
 
 
@@ -156,7 +162,12 @@ def _from_mapping(cls, data: dict, source: str, prefix: str):
             raise VitflyError(f"{source}: unknown key '{prefix}{key}'; expected one of {', '.join(sorted(fields))}")
         default = getattr(cls(), key)
         name = f"{prefix}{key}"
-        if default is None:  # optional number (e.g. camera.horizontal_fov_deg): null keeps None
+        if cls is CollectConfig and key == "sensor":
+            try:
+                kwargs[key] = sensor_from_dict(value, "sensor.")
+            except ValueError as err:
+                raise VitflyError(f"{source}: {err}") from None
+        elif default is None:  # optional number (e.g. camera.horizontal_fov_deg): null keeps None
             kwargs[key] = None if value is None else _number(value, float, source, name)
         elif dataclasses.is_dataclass(default):
             if not isinstance(value, dict):

@@ -38,6 +38,7 @@ from vitfly.sim.controller import ControllerGains
 from vitfly.sim.physics import make_fleet
 from vitfly.sim.quadrotor import Airframe, DroneState
 from vitfly.sim.scenes import Scene
+from vitfly.sim.sensor_models import FrameDelay, StereoDepthConfig, StereoDepthSensor
 
 END_REASONS = ("goal", "timeout", "out_of_bounds")
 
@@ -72,6 +73,12 @@ class RolloutConfig:
     gains: ControllerGains = field(default_factory=ControllerGains)
     record_depth: bool = False  # keep every depth frame in the episode log
     physics: str = "auto"  # back end: "pybullet", "native", or "auto" (pybullet where installed)
+    # a stereo sensor model applied to the camera's clean render (vitfly.sim.sensor_models); None: the ideal camera
+    sensor: StereoDepthConfig | None = None
+
+    def __post_init__(self) -> None:
+        if self.sensor is not None and (self.camera.noise_std_m > 0 or self.camera.dropout_prob > 0):
+            raise ValueError("a sensor model replaces the camera's noise_std_m and dropout_prob: set one or the other")
 
     @property
     def physics_steps_per_tick(self) -> int:
@@ -218,7 +225,8 @@ def run_episodes(
     """Fly one episode per (scene, desired speed m/s) in lockstep; results in input order.
 
     ``on_episode_end(i, result)`` is called as soon as episode i finishes (e.g. to write it out).
-    ``camera_seed`` seeds sensor noise and dropout (default: each scene's seed).
+    ``camera_seed`` seeds sensor noise and dropout, and the sensor model's noise per tick (default: each
+    scene's seed).
     """
     cfg = config or RolloutConfig()
     n = len(scenes)
@@ -232,6 +240,11 @@ def run_episodes(
     camera = DepthCamera(cfg.camera)
     needs_depth = bool(getattr(policy, "needs_depth", True)) or cfg.record_depth
     rngs = [np.random.default_rng([camera_seed if camera_seed is not None else s.seed, 7]) for s in scenes]
+    sensing = None
+    if cfg.sensor is not None:  # (model, per-env seed, per-env frame delay)
+        seeds = [int(camera_seed if camera_seed is not None else s.seed) for s in scenes]
+        delays = [FrameDelay(cfg.sensor.delay_ticks) for _ in scenes]
+        sensing = (StereoDepthSensor(cfg.sensor, cfg.camera), seeds, delays)
     envs = [_EnvTracker(s, v, cfg) for s, v in zip(scenes, speeds, strict=True)]
     speed_arr = np.array([e.speed for e in envs])
     results: list[EpisodeResult | None] = [None] * n
@@ -245,7 +258,8 @@ def run_episodes(
         while any(e.end_reason is None for e in envs):
             # 1. observe all envs, 2. one batched policy call
             active = np.array([e.end_reason is None for e in envs])
-            obs = _observe(states, envs, active, speed_arr, time_s, tick, camera, rngs, needs_depth, cfg)
+            obs = _observe(states, envs, active, speed_arr, time_s, tick, camera, rngs, needs_depth, cfg,
+                           sensing)
             out = policy(obs)
             labels = None
             if isinstance(out, LabelledCommands):
@@ -288,7 +302,8 @@ def run_episodes(
     return results  # type: ignore[return-value]
 
 
-def _observe(states, envs, active, speed_arr, time_s, tick, camera, rngs, needs_depth, cfg) -> Observation:
+def _observe(states, envs, active, speed_arr, time_s, tick, camera, rngs, needs_depth, cfg,
+             sensing=None) -> Observation:
     n = len(envs)
     position = np.array([s.position for s in states])
     quat = np.array([s.quat for s in states])
@@ -299,7 +314,12 @@ def _observe(states, envs, active, speed_arr, time_s, tick, camera, rngs, needs_
             continue
         if needs_depth:
             rot = np.asarray(states[i].rotation).reshape(3, 3)
-            depth[i] = camera.render(e.scene, position[i], rot, rngs[i])
+            if sensing is None:
+                depth[i] = camera.render(e.scene, position[i], rot, rngs[i])
+            else:
+                sensor, seeds, delays = sensing
+                frame = sensor.image(camera.metric_depth(e.scene, position[i], rot), seeds[i], tick)
+                depth[i] = delays[i](frame)
         e.rows["time"].append(time_s)
         e.rows["position"].append(position[i])
         e.rows["velocity"].append(velocity[i])

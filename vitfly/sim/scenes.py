@@ -1,4 +1,4 @@
-"""Procedural obstacle scenes: ``spheres``, ``trees`` and ``window``.
+"""Procedural obstacle scenes: ``spheres``, ``trees``, ``window`` and ``course`` (the hardware arena).
 
 A scene is plain data: three arrays of primitive shapes in the world frame (x forward, y left,
 z up; metres). The same (env, preset, seed) gives the same arrays bit for bit, and a scene
@@ -24,8 +24,9 @@ import numpy as np
 from vitfly.atomic import write_text
 from vitfly.errors import VitflyError
 
-ENVS = ("spheres", "trees", "window")
+ENVS = ("spheres", "trees", "window", "course")
 PRESETS = ("easy", "medium", "hard")
+COURSE_LAYOUTS = ("single", "gap", "multi")
 SCENE_FORMAT = "vitfly.scene"
 SCENE_FORMAT_VERSION = 1
 
@@ -78,6 +79,35 @@ class WindowConfig:
     region: Region = field(default_factory=Region)
 
 
+@dataclass(frozen=True)
+class CourseConfig:
+    """The hardware course: free-standing cylinders and boxes on the floor of a motion-capture-sized arena.
+
+    The arena: 20 m along x from the task's start line, ``arena_y`` wide (8 m); obstacles stand on the floor in
+    ``obstacle_x``. They are ``height`` tall (8 m): floor-to-ceiling columns that are passed beside, never over.
+    The task is the shared one (start at 3.5 m altitude, goal x = 60 m, bounds z 0..10 m), so a real 4 m ceiling
+    is not modelled: 4 m columns would be overflown, 0.5 m above the start altitude (see docs/simulator.md).
+    ``layout``:
+    ``single`` (one obstacle on the start line, within ``single_offset_y`` of y = 0), ``gap`` (two obstacles
+    side by side with a passable gap of ``gap_width`` between their surfaces, beside the start line: the line
+    runs ``gap_line_overlap`` inside one of the two, on a random side, so flying straight meets it),
+    ``multi`` (``count`` obstacles spread over the arena, the first on the start line, at least ``spacing`` apart
+    surface to surface), or ``mixed`` (one of the three per seed). Each obstacle is a cylinder or a box (half each);
+    ``radius`` is a cylinder's radius and a box's half-width.
+    """
+
+    layout: str = "mixed"
+    arena_y: tuple[float, float] = (-4.0, 4.0)  # m; the arena is x 0..20 m (the task starts at x = 0)
+    obstacle_x: tuple[float, float] = (6.0, 16.0)  # where obstacles stand (a clear run-up after the start)
+    radius: tuple[float, float] = (0.25, 0.5)
+    height: tuple[float, float] = (8.0, 8.0)  # m, floor to "ceiling" (taller than the expert would climb over)
+    single_offset_y: float = 0.2
+    gap_width: tuple[float, float] = (1.6, 2.4)
+    gap_line_overlap: tuple[float, float] = (0.05, 0.45)  # m, < 2 * radius[0]: the line meets the obstacle
+    count: tuple[int, int] = (3, 6)
+    spacing: float = 1.5
+
+
 # Density presets. Spheres `medium` is calibrated (docs/simulator.md, "Calibration") so that at 3 m/s the
 # expert succeeds in roughly 80-90 % of trials and straight flight in at most ~30 %.
 PRESET_CONFIGS: dict[str, dict[str, SpheresConfig | TreesConfig | WindowConfig]] = {
@@ -95,6 +125,15 @@ PRESET_CONFIGS: dict[str, dict[str, SpheresConfig | TreesConfig | WindowConfig]]
         "easy": WindowConfig(opening_width=(2.5, 4.0), opening_height=(2.5, 4.0)),
         "medium": WindowConfig(),
         "hard": WindowConfig(opening_width=(1.0, 1.8), opening_height=(1.0, 1.8)),
+    },
+    # the course's presets are its layouts; easy/medium/hard name single/mixed/multi
+    "course": {
+        "easy": CourseConfig(layout="single"),
+        "medium": CourseConfig(layout="mixed"),
+        "hard": CourseConfig(layout="multi"),
+        "single": CourseConfig(layout="single"),
+        "gap": CourseConfig(layout="gap"),
+        "multi": CourseConfig(layout="multi"),
     },
 }
 
@@ -212,7 +251,7 @@ def scene_config(env: str, preset: str) -> SpheresConfig | TreesConfig | WindowC
     if env not in PRESET_CONFIGS:
         raise VitflyError(f"unknown env {env!r}; expected one of {', '.join(ENVS)}")
     if preset not in PRESET_CONFIGS[env]:
-        raise VitflyError(f"unknown preset {preset!r} for env {env}; expected one of {', '.join(PRESETS)}")
+        raise VitflyError(f"unknown preset {preset!r} for env {env}; expected one of {', '.join(PRESET_CONFIGS[env])}")
     return PRESET_CONFIGS[env][preset]
 
 
@@ -220,7 +259,7 @@ def make_scene(
     env: str,
     preset: str = "medium",
     seed: int = 0,
-    config: SpheresConfig | TreesConfig | WindowConfig | None = None,
+    config: SpheresConfig | TreesConfig | WindowConfig | CourseConfig | None = None,
 ) -> Scene:
     """Generate the scene for (env, preset, seed); ``config`` overrides the preset's generator config."""
     cfg = config if config is not None else scene_config(env, preset)
@@ -233,6 +272,9 @@ def make_scene(
         return Scene(env, preset, int(seed), **{**empty, "spheres": canopies, "cylinders": trunks})
     if env == "window":
         return Scene(env, preset, int(seed), **{**empty, "boxes": _window(cfg, rng)})
+    if env == "course":
+        cylinders, boxes = _course(cfg, rng)
+        return Scene(env, preset, int(seed), **{**empty, "cylinders": cylinders, "boxes": boxes})
     raise VitflyError(f"unknown env {env!r}; expected one of {', '.join(ENVS)}")
 
 
@@ -299,6 +341,42 @@ def _window(cfg: WindowConfig, rng: np.random.Generator) -> np.ndarray:
         [x0, y0, z1, x1, y1, r.z[1]],  # above
     ]
     return np.array([b for b in boxes if b[4] > b[1] and b[5] > b[2]], dtype=np.float64)
+
+
+def _course(cfg: CourseConfig, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+    """Cylinders (K, 5) and boxes (K, 6) of one course layout (see :class:`CourseConfig`)."""
+    layout = cfg.layout
+    if layout == "mixed":
+        layout = COURSE_LAYOUTS[int(rng.integers(len(COURSE_LAYOUTS)))]
+    if layout not in COURSE_LAYOUTS:
+        raise VitflyError(f"course layout is {cfg.layout!r}; expected one of {', '.join(COURSE_LAYOUTS)}, mixed")
+    y_lo, y_hi = cfg.arena_y
+    x = rng.uniform(*cfg.obstacle_x)
+    if layout == "single":
+        sites = [(x, rng.uniform(-cfg.single_offset_y, cfg.single_offset_y), rng.uniform(*cfg.radius))]
+    elif layout == "gap":
+        gap, side = rng.uniform(*cfg.gap_width), 1.0 if rng.uniform() < 0.5 else -1.0
+        centre = side * (gap / 2 + rng.uniform(*cfg.gap_line_overlap))  # the other obstacle is on the line
+        r_left, r_right = rng.uniform(*cfg.radius, size=2)
+        sites = [(x, centre + gap / 2 + r_left, r_left), (x, centre - gap / 2 - r_right, r_right)]
+    else:
+        n = int(rng.integers(cfg.count[0], cfg.count[1] + 1))
+        sites = [(x, rng.uniform(-cfg.single_offset_y, cfg.single_offset_y), rng.uniform(*cfg.radius))]
+        for _ in range(200 * n):  # rejection sampling (seeded, so deterministic)
+            if len(sites) == n:
+                break
+            r = rng.uniform(*cfg.radius)
+            cand = (rng.uniform(*cfg.obstacle_x), rng.uniform(y_lo + r, y_hi - r), r)
+            if all(math.hypot(cand[0] - s[0], cand[1] - s[1]) - cand[2] - s[2] >= cfg.spacing for s in sites):
+                sites.append(cand)
+    cylinders, boxes = [], []
+    for sx, sy, r in sites:
+        h = rng.uniform(*cfg.height)
+        if rng.uniform() < 0.5:
+            cylinders.append([sx, sy, 0.0, h, r])
+        else:
+            boxes.append([sx - r, sy - r, 0.0, sx + r, sy + r, h])
+    return np.array(cylinders, dtype=np.float64).reshape(-1, 5), np.array(boxes, dtype=np.float64).reshape(-1, 6)
 
 
 def _grid(lo: float, hi: float, spacing: float) -> tuple[np.ndarray, float]:
