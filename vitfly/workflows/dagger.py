@@ -78,7 +78,7 @@ def train_dir(cfg: DaggerConfig, round_index: int, baseline: bool = False) -> Pa
 
 def final_checkpoint(cfg: DaggerConfig, round_index: int, baseline: bool = False) -> Path:
     """The weights a round's training ended with (the next round starts from them, evaluation flies them): its
-    ``last.ckpt``, which every training rewrites at the end of each epoch (``vitfly.training_checkpoints``)."""
+    ``last.ckpt``, which every training rewrites at the end of each epoch (``vitfly.training.checkpoints``)."""
     return train_dir(cfg, round_index, baseline) / "checkpoints" / "last.ckpt"
 
 
