@@ -3,7 +3,7 @@
 Readers accept files written by other tools: ``/trajectories/env`` may be any HDF5 string type
 (fixed or variable length, ASCII or UTF-8), integer fields any signed or unsigned integer type, and
 every dataset any storage layout (contiguous, chunked, compressed or not). Appending needs the
-resizable (chunked) layout this writer creates.
+resizable (chunked) layout that ``writer`` creates.
 """
 
 from __future__ import annotations
