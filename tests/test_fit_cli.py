@@ -238,7 +238,7 @@ def direct_val_loss(net, data_path, val_indices) -> float:
 
 def test_validate_takes_the_network_from_a_no_state_checkpoint(data_path, tmp_path, capsys):
     from vitfly.training import train_policy
-    from vitfly.training_cli import build_cli
+    from vitfly.training.cli import build_cli
     from vitfly.zoo import create_model
 
     ckpt = train_policy(data_path, "lstmnet", tmp_path / "nostate", use_state=False, max_epochs=1, batch_size=2,

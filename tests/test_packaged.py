@@ -14,7 +14,7 @@ import vitfly
 from vitfly import packaged
 from vitfly.cli import main
 from vitfly.errors import VitflyError
-from vitfly.training_cli import resolve_config_args
+from vitfly.training.cli import resolve_config_args
 from vitfly.workflows.reproduce_config import load_reproduce_config
 from vitfly.workflows.reproduce_report import _record_closed_loop
 from vitfly.zoo import create_model, save_checkpoint

@@ -166,13 +166,13 @@ def test_quiet_third_party_filters_only_the_listed_warnings():
         # a Lightning warning that is not listed, the same text from vitfly, and a vitfly warning: all kept
         warn_from("lightning.pytorch.callbacks.model_checkpoint", "Checkpoint directory x exists and is not empty.",
                   UserWarning)
-        warn_from("vitfly.training", "The number of training batches (2) is smaller than the logging interval",
+        warn_from("vitfly.training.fit", "The number of training batches (2) is smaller than the logging interval",
                   UserWarning)
         warn_from("vitfly.zoo.compiled", "torch.compile unavailable: running eager", UserWarning)
     kept = [(w.filename, str(w.message)) for w in caught]
     assert kept == [
         ("lightning/pytorch/callbacks/model_checkpoint.py", "Checkpoint directory x exists and is not empty."),
-        ("vitfly/training.py", "The number of training batches (2) is smaller than the logging interval"),
+        ("vitfly/training/fit.py", "The number of training batches (2) is smaller than the logging interval"),
         ("vitfly/zoo/compiled.py", "torch.compile unavailable: running eager"),
     ]
 

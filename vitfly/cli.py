@@ -1,6 +1,6 @@
 """The ``vitfly`` command.
 
-``fit``, ``validate``, ``test`` and ``predict`` go to LightningCLI (``vitfly.training_cli``);
+``fit``, ``validate``, ``test`` and ``predict`` go to LightningCLI (``vitfly.training.cli``);
 every other subcommand is one module under ``vitfly.commands`` with ``add_arguments(parser)``
 and ``run(args) -> int``. Modules are imported lazily so ``vitfly --help`` stays quick.
 """
@@ -92,7 +92,7 @@ def main(argv: list[str] | None = None) -> int:
     quiet_third_party()  # Lightning's tips and known dependency warnings; vitfly's own output stays
     try:
         if command in LIGHTNING_SUBCOMMANDS:
-            from vitfly.training_cli import run_lightning_cli
+            from vitfly.training.cli import run_lightning_cli
 
             return run_lightning_cli([command, *rest])
         module = importlib.import_module(f"vitfly.commands.{SUBCOMMANDS[command][0]}")

@@ -6,7 +6,7 @@ import argparse
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    from vitfly.workflows.dagger import STAGE_NAMES_HELP
+    from vitfly.workflows.dagger_stages import STAGE_NAMES_HELP
 
     parser.add_argument("--config", default="dagger",
                         help="dagger YAML: a path, or a shipped config's name (`vitfly configs`)")

@@ -1,7 +1,7 @@
 """Training from Python: the same PolicyModule / TrajectoryDataModule / Trainer set-up as ``vitfly fit``.
 
 ``train_policy(data_path, model, ...)`` is what ``vitfly pipeline`` and ``vitfly ablate`` call; the
-shared pieces (checkpoint callback, progress bar, wandb default) are used by ``vitfly.training_cli``.
+shared pieces (checkpoint callback, progress bar, wandb default) are used by ``vitfly.training.cli``.
 """
 
 from __future__ import annotations
@@ -20,7 +20,7 @@ CHECKPOINT_DIR = "checkpoints"
 def checkpoint_defaults() -> dict[str, Any]:
     """ModelCheckpoint arguments for the best checkpoint, best.ckpt (fixed name).
 
-    last.ckpt comes from a second callback, ``vitfly.training_checkpoints.LastCheckpoint``: Lightning's own
+    last.ckpt comes from a second callback, ``vitfly.training.checkpoints.LastCheckpoint``: Lightning's own
     ``save_last`` refreshes it only when the validation loss improves.
     """
     return {
@@ -69,7 +69,7 @@ def train_policy(
     Writes ``out_dir/checkpoints/{best,last}.ckpt``, ``out_dir/metrics.csv`` and ``out_dir/split.json``.
     An interrupted run resumes from ``out_dir/checkpoints/last.ckpt`` when called again with the same
     arguments, as the uninterrupted run would have gone on (the random generators' state travels in the
-    checkpoint: ``vitfly.training_checkpoints.RngState``); a finished run returns at once. The split is frozen
+    checkpoint: ``vitfly.training.checkpoints.RngState``); a finished run returns at once. The split is frozen
     in ``out_dir/split.json``: a later call on a dataset that grew keeps the validation trajectories and trains
     on the new ones as well.
     ``policy_kwargs`` go to PolicyModule (e.g. lr, tbptt_steps), ``data_kwargs`` to TrajectoryDataModule,
@@ -84,7 +84,7 @@ def train_policy(
     from lightning.pytorch.loggers import CSVLogger
 
     from vitfly.datamodules.datamodule import TrajectoryDataModule
-    from vitfly.training_checkpoints import LastCheckpoint, RngState
+    from vitfly.training.checkpoints import LastCheckpoint, RngState
     from vitfly.zoo.policy import create_policy
 
     out_dir = Path(out_dir)
