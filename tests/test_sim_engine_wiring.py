@@ -169,8 +169,9 @@ def test_collect_batched_writes_the_numpy_dataset(tmp_path, capsys):
 
 def test_collect_bad_engine_settings_are_one_line(tmp_path, capsys):
     out = tmp_path / "x.h5"
-    assert main(["collect", "--out", str(out), *COLLECT, "--sim-dtype", "float16"]) == 2
-    assert "invalid choice" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        main(["collect", "--out", str(out), *COLLECT, "--sim-dtype", "float16"])
+    assert "argument --sim-dtype: invalid choice: 'float16'" in capsys.readouterr().err
     assert main(["collect", "--out", str(out), *COLLECT, "--sim", "batched", "--workers", "2"]) == 2
     assert "field workers is 2 with sim batched" in one_error_line(capsys)
     assert not out.exists()

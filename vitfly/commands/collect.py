@@ -6,6 +6,7 @@ import argparse
 
 from vitfly.datamodules.schema import DEPTH_STORAGE
 from vitfly.sim.collect import CollectConfig, collect, load_collect_config
+from vitfly.sim.engine import SIM_DTYPES, SIM_ENGINES
 from vitfly.sim.physics import PHYSICS_CHOICES
 
 _DEFAULTS = CollectConfig()
@@ -65,11 +66,26 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="rigid-body physics back end, stored with the dataset: pybullet (the reference), native (numpy, same "
         f"results to rounding) or auto, pybullet where installed (YAML, else {_DEFAULTS.physics})",
     )
+    parser.add_argument(
+        "--sim",
+        choices=SIM_ENGINES,
+        default=keep,
+        help="simulator engine: numpy, or batched (torch, num_envs trajectories in lockstep, the native physics; "
+        f"float64 on the CPU writes the numpy engine's data), stored with the dataset (YAML, else {_DEFAULTS.sim})",
+    )
+    parser.add_argument("--sim-device", default=keep,
+                        help=f"the batched engine's device: cpu or cuda[:N] (YAML, else {_DEFAULTS.sim_device})")
+    parser.add_argument("--sim-dtype", choices=SIM_DTYPES, default=keep,
+                        help=f"the batched engine's precision: float64 (exact) or float32 (YAML, else "
+                        f"{_DEFAULTS.sim_dtype})")
+    parser.add_argument("--num-envs", type=int, default=keep,
+                        help=f"trajectories the batched engine flies in lockstep (YAML, else {_DEFAULTS.num_envs})")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
 
 
 def run(args: argparse.Namespace) -> int:
-    flags = ("trajectories", "speeds", "seed", "workers", "depth_compression", "log_every_tick", "physics")
+    flags = ("trajectories", "speeds", "seed", "workers", "depth_compression", "log_every_tick", "physics", "sim",
+             "sim_device", "sim_dtype", "num_envs")
     overrides = {name: getattr(args, name, None) for name in flags}
     config = load_collect_config(getattr(args, "config", None), overrides)
     summary = collect(config, args.out, progress=not args.no_progress)
