@@ -175,3 +175,30 @@ def test_collect_bad_engine_settings_are_one_line(tmp_path, capsys):
     assert main(["collect", "--out", str(out), *COLLECT, "--sim", "batched", "--workers", "2"]) == 2
     assert "field workers is 2 with sim batched" in one_error_line(capsys)
     assert not out.exists()
+
+
+@pytest.mark.parametrize("arch", ["convnet", "lstmnet"])
+def test_a_learned_policy_has_a_tensor_path_with_the_numpy_commands(arch):
+    from vitfly.eval.learned_policy import BatchedLearnedPolicy, LearnedPolicy
+    from vitfly.sim.batched.policies import BatchedObservation, as_batched_policy
+    from vitfly.sim.rollout import Observation
+    from vitfly.zoo import create_model
+
+    torch.manual_seed(1)
+    net = create_model(arch)
+    host, twin = LearnedPolicy(net), as_batched_policy(LearnedPolicy(net))
+    assert isinstance(twin, BatchedLearnedPolicy)
+    n, rng = 4, np.random.default_rng(0)
+    host.reset(n), twin.reset(n)
+    for tick, active in enumerate(([True] * 4, [True, False, True, True], [False, False, True, False])):
+        depth = rng.random((n, 60, 90))
+        quat = rng.normal(size=(n, 4))
+        quat /= np.linalg.norm(quat, axis=1, keepdims=True)
+        pos, speed, act = rng.uniform(0.0, 4.0, (n, 3)), np.array([3.0, 5.0, 7.0, 4.0]), np.array(active)
+        want = host(Observation(depth.astype(np.float32), speed, quat, pos, np.zeros((n, 3)), [], act,
+                                np.zeros(n), tick))
+        t = torch.tensor
+        got = twin(BatchedObservation(t(depth), t(speed), t(quat), t(pos), t(np.zeros((n, 3))), t(act), 0.0, tick,
+                                      None))
+        assert got.dtype == torch.float64
+        assert np.allclose(got.numpy()[act], want[act], rtol=0, atol=1e-12)  # the recurrent state carried alike

@@ -116,9 +116,13 @@ class NumpyPolicy:
 
 def as_batched_policy(policy):
     """``policy`` for the batched engine: batched policies as they are, the numpy expert and straight
-    flight as their batched twins (same commands), any other policy through :class:`NumpyPolicy`."""
+    flight as their batched twins (same commands), a policy's own ``batched_twin()`` where it gives one
+    (e.g. ``vitfly.eval.learned_policy.LearnedPolicy``), any other policy through :class:`NumpyPolicy`."""
     if getattr(policy, "batched", False):
         return policy
+    twin = getattr(policy, "batched_twin", None)  # a policy's own tensor path (a learned policy's network)
+    if twin is not None and (batched := twin()) is not None:
+        return batched
     if type(policy) is ExpertPolicy:
         return BatchedExpert(policy.config)
     if type(policy) is StraightPolicy:
