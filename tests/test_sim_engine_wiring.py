@@ -202,3 +202,21 @@ def test_a_learned_policy_has_a_tensor_path_with_the_numpy_commands(arch):
                                       None))
         assert got.dtype == torch.float64
         assert np.allclose(got.numpy()[act], want[act], rtol=0, atol=1e-12)  # the recurrent state carried alike
+
+
+def test_workflows_pass_the_engine_through(tmp_path):
+    from pathlib import Path
+
+    from vitfly.errors import VitflyError
+    from vitfly.workflows.dagger_config import load_dagger_config
+    from vitfly.workflows.pipeline import EvalStage, sweep_config
+    from vitfly.workflows.reproduce_config import ReproduceConfig, ReproduceEvaluate, eval_stage
+
+    sweep = sweep_config(EvalStage(sim="batched", sim_dtype="float32"), tmp_path, "expert").validate()
+    assert sweep.engine == SimEngine("batched", "cpu", "float32")
+    stage = eval_stage(ReproduceConfig(evaluate=ReproduceEvaluate(sim="batched")), ["trees"], [3.0], 1)
+    assert (stage.sim, stage.sim_device, stage.sim_dtype) == ("batched", "cpu", "float64")
+    repo = Path(__file__).resolve().parents[1]
+    data = {"collect_config": str(repo / "configs/collect/spheres.yaml"), "collect": {"sim": "batched"}}
+    with pytest.raises(VitflyError, match="dagger flies its rounds .* with the numpy engine"):
+        load_dagger_config(repo / "configs/dagger.yaml", "tiny", {"out": str(tmp_path), "data": data})
