@@ -71,7 +71,8 @@ def test_a_batched_sweep_flies_the_numpy_sweep(tmp_path, policy):
     assert len(got) == 2
     assert_same_trials(ref, got)
     assert {r.extra["sim"]["engine"] for r in ref} == {"numpy"} and {r.extra["physics"] for r in ref} == {"native"}
-    assert {json.dumps(r.extra["sim"]) for r in got} == {'{"engine": "batched", "device": "cpu", "dtype": "float64"}'}
+    assert [r.extra["sim"] for r in got] == [{"engine": "batched", "device": "cpu", "dtype": "float64",
+                                              "compile": False}] * 2
     assert {r.extra["physics"] for r in got} == {"native"}
     if "straight" in policy:
         assert sum(r.metrics["collisions"] for r in got) >= 1  # the flights meet obstacles, counted alike
@@ -126,6 +127,9 @@ def test_yaml_fields_and_a_missing_cuda(tmp_path):
     f.write_text("sim: batched\nsim_dtype: float32\n")
     cfg = load_sweep_config(f)
     assert cfg.engine == SimEngine("batched", "cpu", "float32") and cfg.physics == "native"
+    f.write_text("sim_compile: true\n")
+    with pytest.raises(VitflyError, match="field 'sim_compile' is True but 'sim' is 'numpy'"):
+        load_sweep_config(f)
     f.write_text("sim: torch\n")
     with pytest.raises(VitflyError, match=r"eval.yaml: field 'sim' is 'torch'; expected one of numpy, batched"):
         load_sweep_config(f)
@@ -151,7 +155,8 @@ def test_collect_batched_writes_the_numpy_dataset(tmp_path, capsys):
     with h5py.File(ref) as a, h5py.File(got) as b:
         config_a, config_b = json.loads(a.attrs["config"]), json.loads(b.attrs["config"])
         assert "sim" not in config_a["collect"]  # a numpy dataset's bytes are those of before the engine choice
-        assert config_b["collect"].pop("sim") == {"engine": "batched", "device": "cpu", "dtype": "float64"}
+        assert config_b["collect"].pop("sim") == {"engine": "batched", "device": "cpu", "dtype": "float64",
+                                                  "compile": False}
         assert config_a == config_b
         for name in ("desired_speed", "time", "collision", "traj_offsets", "trajectories/seed",
                      "trajectories/n_collisions", "trajectories/success"):

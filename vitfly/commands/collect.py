@@ -78,6 +78,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--sim-dtype", choices=SIM_DTYPES, default=keep,
                         help=f"the batched engine's precision: float64 (exact) or float32 (YAML, else "
                         f"{_DEFAULTS.sim_dtype})")
+    parser.add_argument("--sim-compile", action="store_true", default=keep,
+                        help="the batched engine's kernels through torch.compile (seconds once, then faster)")
     parser.add_argument("--num-envs", type=int, default=keep,
                         help=f"trajectories the batched engine flies in lockstep (YAML, else {_DEFAULTS.num_envs})")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
@@ -85,7 +87,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     flags = ("trajectories", "speeds", "seed", "workers", "depth_compression", "log_every_tick", "physics", "sim",
-             "sim_device", "sim_dtype", "num_envs")
+             "sim_device", "sim_dtype", "sim_compile", "num_envs")
     overrides = {name: getattr(args, name, None) for name in flags}
     config = load_collect_config(getattr(args, "config", None), overrides)
     summary = collect(config, args.out, progress=not args.no_progress)

@@ -47,6 +47,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--sim-device", help="the batched engine's device: cpu (default) or cuda[:N]")
     parser.add_argument("--sim-dtype", choices=SIM_DTYPES,
                         help="the batched engine's precision: float64 (default, exact) or float32 (faster)")
+    parser.add_argument("--sim-compile", action="store_true", default=None,
+                        help="the batched engine's kernels through torch.compile (seconds once, then faster)")
     parser.add_argument("--timeout", type=float, dest="timeout_s", help="trial timeout, s (default: scales w/ speed)")
     parser.add_argument("--camera", nargs="+", metavar="FIELD=VALUE", type=_camera_setting,
                         help="camera settings (e.g. vertical_fov_deg=70, or preset=camera_config_yaml); "
@@ -85,7 +87,8 @@ def run(args: argparse.Namespace) -> int:
 
     overrides = {k: getattr(args, k) for k in ("policy", "arch", "name", "env", "preset", "speeds", "trials", "seed",
                                               "out", "num_envs", "workers", "shard", "device", "threads",
-                                              "backend", "physics", "sim", "sim_device", "sim_dtype", "timeout_s",
+                                              "backend", "physics", "sim", "sim_device", "sim_dtype", "sim_compile",
+                                              "timeout_s",
                                               "wandb_project", "control_hz", "depth_max_m", "override_sensor")}
     overrides["camera"] = dict(args.camera) if args.camera else None
     overrides["gif"] = False if args.no_gif else None

@@ -43,6 +43,7 @@ class SweepConfig:
     sim: str = "numpy"  # simulator engine: "numpy" or "batched" (vitfly.sim.engine; physics native)
     sim_device: str = "cpu"  # the batched engine's device: "cpu" or "cuda[:N]"
     sim_dtype: str = "float64"  # the batched engine's precision: "float64" (exact) or "float32"
+    sim_compile: bool = False  # the batched engine's kernels through torch.compile (faster on a CPU after seconds)
     timeout_s: float | None = None  # per trial; default scales with speed (sim's default)
     # the sensor flown with (vitfly.eval.sensor): None = the checkpoint's training sensor, else vitfly's defaults
     camera: dict | None = None  # CameraConfig fields, e.g. {vertical_fov_deg: 70}, or {preset: camera_config_yaml}
@@ -78,7 +79,7 @@ class SweepConfig:
         """The simulator engine that flies the trials (:class:`vitfly.sim.engine.SimEngine`)."""
         from vitfly.sim.engine import SimEngine
 
-        return SimEngine(self.sim, self.sim_device, self.sim_dtype)
+        return SimEngine(self.sim, self.sim_device, self.sim_dtype, self.sim_compile)
 
     @property
     def label(self) -> str:

@@ -187,7 +187,7 @@ def fly_batch(batch: Sequence[TrialSpec], policy, cfg: SweepConfig, out_file: Pa
     if engine.batched:  # the batched twin of the expert and straight flight, a learned policy's torch path
         from vitfly.sim.batched.policies import as_batched_policy
 
-        policy = as_batched_policy(policy)
+        policy = as_batched_policy(policy, compile=engine.compile)
     timed = TimedPolicy(policy)
 
     def finished(i: int, result) -> None:
@@ -268,7 +268,8 @@ def resolve_conflicts(cfg: SweepConfig, identity: SweepIdentity) -> int:
 
 
 def _engine_text(sim: dict) -> str:
-    return " ".join(str(sim[k]) for k in ("engine", "device", "dtype") if k in sim)
+    return " ".join([str(sim[k]) for k in ("engine", "device", "dtype") if k in sim] + ["compiled"] * bool(
+        sim.get("compile")))
 
 
 def pending_trials(cfg: SweepConfig, identity: SweepIdentity) -> tuple[list[TrialSpec], int]:

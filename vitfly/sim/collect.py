@@ -76,11 +76,12 @@ class CollectConfig:
     sim: str = "numpy"
     sim_device: str = "cpu"
     sim_dtype: str = "float64"
+    sim_compile: bool = False  # the batched engine's kernels through torch.compile
     num_envs: int = 8  # the batched engine's lockstep batch (the data does not depend on it)
 
     @property
     def engine(self) -> SimEngine:
-        return SimEngine(self.sim, self.sim_device, self.sim_dtype)
+        return SimEngine(self.sim, self.sim_device, self.sim_dtype, self.sim_compile)
 
     def validate(self, source: str = "config") -> CollectConfig:
         if self.env not in ENVS:
@@ -131,7 +132,8 @@ class CollectConfig:
     def content_key(self) -> dict:
         """The fields that decide the data (not how many trajectories, workers, nor the storage)."""
         d = dataclasses.asdict(self)
-        for key in ("trajectories", "workers", "depth_compression", "num_envs", "sim", "sim_device", "sim_dtype"):
+        for key in ("trajectories", "workers", "depth_compression", "num_envs", "sim", "sim_device", "sim_dtype",
+                    "sim_compile"):
             d.pop(key)
         if self.engine.batched:  # absent for the numpy engine: its datasets keep the bytes of before the choice
             d["sim"] = self.engine.key()
