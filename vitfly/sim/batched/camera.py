@@ -70,39 +70,6 @@ def sphere_windows(cam, radius, mask, max_range_m: float, frustum, tan_h: float,
     return (keep, *windows)
 
 
-def sphere_row_spans(cam, r2, r0, r1, c0, c1, v_rows, tan_h: float, width: int):
-    """Every sphere's window cut into the image's rows, each narrowed to the columns whose rays may meet it.
-
-    cam (K, 3) centres in the camera frame, r2 (K,) squared radii, (r0, r1, c0, c1) (K,) their windows
-    (:func:`sphere_windows`), v_rows (H,) each row's ray slope (the rays are (1, u[col], v[row])). Returns
-    windows (r0, r1, c0, c1) of shape (K H,), one row each (empty outside the sphere's window): shape k h of
-    them is sphere k on row h. A ray (1, u, v) meets the sphere where (cx + cy u + cz v)^2 >= (1 + u^2 + v^2)
-    (|c|^2 - r^2); with q = cx^2 + cz^2 - r^2 clearly (beyond rounding) positive that is one interval of u per
-    row, mapped to columns with the windows' own rounding (floor / ceil + 1, :func:`pixel_windows`), so every
-    pixel that can hit stays in (the others would only read +inf): the same hits from about half the pairs.
-    Spheres without it (round the camera's y axis, or round the camera) keep their window's columns.
-    Dense over (K, H) so that it compiles into one kernel (no sizes that depend on the data).
-    """
-    height = v_rows.shape[0]
-    cx, cy, cz = (x[:, None] for x in cam.unbind(-1))
-    rr, v = r2[:, None], v_rows[None, :]
-    q = cx * cx + cz * cz - rr
-    bounded = q > 1e-3 * (cx * cx + cz * cz + rr)
-    q = torch.where(bounded, q, torch.ones_like(q))
-    c = cx * cx + cy * cy + cz * cz - rr
-    w = cx + cz * v
-    s = torch.sqrt((c * (w * w - q * (1.0 + v * v))).clamp(min=0.0))  # a row that only grazes keeps a span
-    u_lo, u_hi = (cy * w - s) / q, (cy * w + s) / q
-    s0 = torch.floor((1.0 - u_hi / tan_h) * width / 2 - 0.5).clamp(0, width).long()
-    s1 = (torch.ceil((1.0 - u_lo / tan_h) * width / 2 - 0.5) + 1).clamp(0, width).long()
-    lo, hi = c0[:, None].expand_as(s0), c1[:, None].expand_as(s1)
-    lo, hi = torch.where(bounded, torch.maximum(lo, s0), lo), torch.where(bounded, torch.minimum(hi, s1), hi)
-    row = torch.arange(height, device=cam.device)[None, :].expand_as(lo)
-    in_window = (row >= r0[:, None]) & (row < r1[:, None])
-    hi = torch.where(in_window, hi, lo)  # no pixels on rows outside the window
-    return row.reshape(-1), (row + 1).reshape(-1), lo.reshape(-1), hi.reshape(-1)
-
-
 def window_pairs(r0, r1, c0, c1) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """Every (shape, pixel-in-window) pair, shape by shape: ``(shape (P,), start (K,), cols (K,))``.
 
@@ -234,11 +201,6 @@ class BatchedCamera:
         self.mount = torch.as_tensor(np.asarray(cfg.mount_offset_m, dtype=np.float64), **like)
         self.frustum = torch.as_tensor(ref._frustum, **like)  # (4, 3) inward unit normals, body frame
         self.reach = ref._reach
-        # rows share one ray slope v when the pixel rays are (1, u[col], v[row]) (every preset): spheres are
-        # then cast row by row over their exact column spans (sphere_row_spans), else over their windows
-        u_grid, v_grid = ref._u_flat.reshape(cfg.height, cfg.width), ref._v_flat.reshape(cfg.height, cfg.width)
-        separable = (u_grid == u_grid[:1]).all() and (v_grid == v_grid[:, :1]).all()
-        self.v_rows = torch.as_tensor(v_grid[:, 0].copy(), **like) if separable else None
         corners = [[sx, sy, sz] for sx in (0, 1) for sy in (0, 1) for sz in (0, 1)]
         self._box_corners = torch.as_tensor(corners, **like)
         self._cyl_corners = torch.as_tensor(
@@ -249,7 +211,6 @@ class BatchedCamera:
         self._boxes_kernel = wrap(box_pair_depth)
         self._ground_kernel = wrap(ground_depth)
         self._sphere_windows = wrap(sphere_windows)
-        self._sphere_row_spans = wrap(sphere_row_spans)
 
     # -- public ------------------------------------------------------------------------------------
 
@@ -336,17 +297,7 @@ class BatchedCamera:
             env, k = keep.nonzero(as_tuple=True)
             if len(env) == 0:
                 return None
-            windows = (r0[env, k], r1[env, k], c0[env, k], c1[env, k])
-            if self.v_rows is not None:  # span k h: sphere k on row h
-                r = sph[env, k, 3].detach()
-                windows = self._sphere_row_spans(cam[env, k].detach(), r * r, *windows, self.v_rows, self.tan_h,
-                                                 cfg.width)
-                # only the rows with pixels (one gather of all four): the pair kernel's gathers then stay in cache
-                span = (windows[3] > windows[2]).nonzero().flatten()
-                windows = torch.stack(windows, 1).index_select(0, span).unbind(1)
-                owner = span // cfg.height
-                env, k = env.index_select(0, owner), k.index_select(0, owner)
-            pairs = self._pairs(windows)
+            pairs = self._pairs((r0[env, k], r1[env, k], c0[env, k], c1[env, k]))
         r = sph[env, k, 3]
         return self._spheres_kernel(pairs, env, cam[env, k], r * r, self.u, self.v, self.a, cfg.width)
 
