@@ -7,6 +7,7 @@ import argparse
 from vitfly.datamodules.schema import DEPTH_STORAGE
 from vitfly.errors import VitflyError
 from vitfly.sim.collect import CollectConfig, collect, load_collect_config
+from vitfly.sim.engine import SIM_DTYPES, SIM_ENGINES
 from vitfly.sim.physics import PHYSICS_CHOICES
 from vitfly.sim.sensor_models import sensor_flag_values
 
@@ -70,11 +71,28 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--sensor", nargs="+", metavar="MODEL|FIELD=VALUE", default=keep,
                         help="stereo sensor model on the rendered depth, e.g. --sensor d435 delay_ticks=1 "
                         "(vitfly.sim.sensor_models; YAML sensor: {model: d435, ...}; none: the ideal camera)")
+    parser.add_argument(
+        "--sim",
+        choices=SIM_ENGINES,
+        default=keep,
+        help="simulator engine: numpy, or batched (torch, num_envs trajectories in lockstep, the native physics; "
+        f"float64 on the CPU writes the numpy engine's data), stored with the dataset (YAML, else {_DEFAULTS.sim})",
+    )
+    parser.add_argument("--sim-device", default=keep,
+                        help=f"the batched engine's device: cpu or cuda[:N] (YAML, else {_DEFAULTS.sim_device})")
+    parser.add_argument("--sim-dtype", choices=SIM_DTYPES, default=keep,
+                        help=f"the batched engine's precision: float64 (exact) or float32 (YAML, else "
+                        f"{_DEFAULTS.sim_dtype})")
+    parser.add_argument("--sim-compile", action="store_true", default=keep,
+                        help="the batched engine's kernels through torch.compile (seconds once, then faster)")
+    parser.add_argument("--num-envs", type=int, default=keep,
+                        help=f"trajectories the batched engine flies in lockstep (YAML, else {_DEFAULTS.num_envs})")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
 
 
 def run(args: argparse.Namespace) -> int:
-    flags = ("trajectories", "speeds", "seed", "workers", "depth_compression", "log_every_tick", "physics")
+    flags = ("trajectories", "speeds", "seed", "workers", "depth_compression", "log_every_tick", "physics", "sim",
+             "sim_device", "sim_dtype", "sim_compile", "num_envs")
     overrides = {name: getattr(args, name, None) for name in flags}
     try:
         overrides["sensor"] = sensor_flag_values(getattr(args, "sensor", None))

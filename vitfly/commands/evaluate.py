@@ -10,6 +10,7 @@ from __future__ import annotations
 import argparse
 
 from vitfly.eval.config import BACKENDS, ENVS, load_sweep_config
+from vitfly.sim.engine import SIM_DTYPES, SIM_ENGINES
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -32,7 +33,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--workers", type=int, help="worker processes")
     parser.add_argument("--shard", help="i/n: fly only shard i (0-based) of n; shards' outputs merge")
     parser.add_argument("--device", help="device of learned policies' batched network: cpu or cuda[:N] "
-                                         "(the simulator steps on CPU processes either way)")
+                                         "(with --sim batched --sim-device on the same card, observations stay on it)")
     parser.add_argument("--threads", type=int, help="torch threads per worker")
     parser.add_argument("--backend", choices=BACKENDS,
                         help="inference back end of learned policies (compiled: eager with the image encoder "
@@ -40,6 +41,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--physics", choices=("auto", "pybullet", "native"),
                         help="rigid-body physics back end, stated in every trial record (config default: auto, "
                              "pybullet where installed, else native)")
+    parser.add_argument("--sim", choices=SIM_ENGINES,
+                        help="simulator engine, stated in every trial record and part of its key: numpy (default) or "
+                             "batched (torch, the native physics; float64 on the CPU gives the numpy engine's results)")
+    parser.add_argument("--sim-device", help="the batched engine's device: cpu (default) or cuda[:N]")
+    parser.add_argument("--sim-dtype", choices=SIM_DTYPES,
+                        help="the batched engine's precision: float64 (default, exact) or float32 (faster)")
+    parser.add_argument("--sim-compile", action="store_true", default=None,
+                        help="the batched engine's kernels through torch.compile (seconds once, then faster)")
     parser.add_argument("--timeout", type=float, dest="timeout_s", help="trial timeout, s (default: scales w/ speed)")
     parser.add_argument("--camera", nargs="+", metavar="FIELD=VALUE", type=_camera_setting,
                         help="camera settings (e.g. vertical_fov_deg=70, or preset=camera_config_yaml); "
@@ -83,8 +92,9 @@ def run(args: argparse.Namespace) -> int:
 
     overrides = {k: getattr(args, k) for k in ("policy", "arch", "name", "env", "preset", "speeds", "trials", "seed",
                                               "out", "num_envs", "workers", "shard", "device", "threads",
-                                              "backend", "physics", "timeout_s", "wandb_project", "control_hz",
-                                              "depth_max_m", "override_sensor")}
+                                              "backend", "physics", "sim", "sim_device", "sim_dtype", "sim_compile",
+                                              "timeout_s",
+                                              "wandb_project", "control_hz", "depth_max_m", "override_sensor")}
     overrides["camera"] = dict(args.camera) if args.camera else None
     try:
         overrides["sensor"] = sensor_flag_values(args.sensor)

@@ -36,10 +36,14 @@ class SweepConfig:
     num_envs: int = 8  # scenes stepped in lockstep (one batched policy call per tick)
     workers: int = 1  # processes
     shard: str | None = None  # "i/n": this process runs shard i (0-based) of n
-    device: str = "cpu"  # learned policies' network: "cpu" or "cuda[:N]" (the simulator always steps on CPU)
+    device: str = "cpu"  # learned policies' network: "cpu" or "cuda[:N]"
     threads: int = 1  # torch threads per worker
     backend: str = "eager"  # learned policies: one of BACKENDS
     physics: str = "auto"  # rigid-body back end: "pybullet", "native" or "auto" (made concrete by validate)
+    sim: str = "numpy"  # simulator engine: "numpy" or "batched" (vitfly.sim.engine; physics native)
+    sim_device: str = "cpu"  # the batched engine's device: "cpu" or "cuda[:N]"
+    sim_dtype: str = "float64"  # the batched engine's precision: "float64" (exact) or "float32"
+    sim_compile: bool = False  # the batched engine's kernels through torch.compile (faster on a CPU after seconds)
     timeout_s: float | None = None  # per trial; default scales with speed (sim's default)
     # the sensor flown with (vitfly.eval.sensor): None = the checkpoint's training sensor, else vitfly's defaults
     camera: dict | None = None  # CameraConfig fields, e.g. {vertical_fov_deg: 70}, or {preset: camera_config_yaml}
@@ -75,10 +79,17 @@ class SweepConfig:
             sensor_from_dict(self.sensor)
         except ValueError as err:
             raise VitflyError(f"{source}: {err}") from None
-        from vitfly.sim.physics import resolve_physics
-
-        self.physics = resolve_physics(self.physics, f"{source}: field 'physics'")
+        self.physics = self.engine.validate(source).physics(self.physics, f"{source}: field 'physics'")
+        if self.sensor is not None and self.sim != "numpy":
+            raise VitflyError(f"{source}: field 'sensor': sensor models run on the numpy engine only (sim: numpy)")
         return self
+
+    @property
+    def engine(self):
+        """The simulator engine that flies the trials (:class:`vitfly.sim.engine.SimEngine`)."""
+        from vitfly.sim.engine import SimEngine
+
+        return SimEngine(self.sim, self.sim_device, self.sim_dtype, self.sim_compile)
 
     @property
     def label(self) -> str:

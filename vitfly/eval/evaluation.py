@@ -71,7 +71,7 @@ def depth_gif(cfg: SweepConfig, source: PolicySource | None = None, identity: Sw
     ``depth_<label>_<env>.json`` beside it names the setup it shows; a GIF of another setup (e.g. the
     checkpoint before a retrain) is flown again.
     """
-    from vitfly.sim.rollout import run_episodes
+    from vitfly.sim.engine import fly
     from vitfly.sim.scenes import make_scene
     from vitfly.sim.visualize import write_gif
 
@@ -84,8 +84,8 @@ def depth_gif(cfg: SweepConfig, source: PolicySource | None = None, identity: Sw
     sidecar = path.with_suffix(".json")
     if path.exists() and sidecar.exists() and json.loads(sidecar.read_text()).get("setup_id") == setup.id:
         return path
-    result = run_episodes([make_scene(spec.env, spec.preset, spec.scene_seed)], [spec.speed], source.build(),
-                          rollout_config(cfg, record_depth=True))[0]
+    result = fly([make_scene(spec.env, spec.preset, spec.scene_seed)], [spec.speed], source.build(),
+                 rollout_config(cfg, record_depth=True), engine=cfg.engine)[0]
     stride = max(1, -(-len(result.log) // MAX_GIF_FRAMES))
     write_gif(result, path, stride=stride)
     write_text(sidecar, json.dumps(about, indent=2) + "\n")

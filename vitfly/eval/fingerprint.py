@@ -3,8 +3,9 @@
 - ``policy_id``: for a learned policy, the network's weights (every state-dict tensor: name, dtype,
   shape, bytes), its modules' classes and plain options (e.g. ``use_state``, layer sizes) and the
   inference back end; for ``expert``, its ``ExpertConfig``; for ``straight``, its class alone;
-- ``rollout_id``: the rollout settings (physics and control rates, camera, task with its timeout
-  and body radius, airframe, controller gains; not whether depth frames are kept);
+- ``rollout_id``: the rollout settings (physics back end, physics and control rates, camera, task
+  with its timeout and body radius, airframe, controller gains; not whether depth frames are kept)
+  and the simulator engine when it is not the numpy one (``vitfly.sim.engine.SimEngine.key``);
 - ``scene_id``: the scene generator's settings of one (env, preset);
 - the sweep seed and the preset name.
 
@@ -86,13 +87,17 @@ def policy_fingerprint(source) -> str:
     return digest({"network": network_fingerprint(source.load_network()), "backend": source.backend})
 
 
-def rollout_fingerprint(rollout_config) -> str:
+def rollout_fingerprint(rollout_config, sim: dict | None = None) -> str:
     """``rollout_id`` of a :class:`vitfly.sim.rollout.RolloutConfig`; ``record_depth`` (logging only) is left out,
-    and so is an unset ``sensor`` (the ideal camera), so that trials from before sensor models keep their key."""
+    and so is an unset ``sensor`` (the ideal camera), so that trials from before sensor models keep their key.
+
+    ``sim``: the engine's key (``SimEngine.key()``), None for the numpy engine, whose ids stay those of
+    every sweep flown before the batched engine existed.
+    """
     plain = _plain(dataclasses.replace(rollout_config, record_depth=False))
     if plain.get("sensor", 0) is None:
         del plain["sensor"]
-    return digest(plain)
+    return digest(plain if sim is None else {"rollout": plain, "sim": sim})
 
 
 def scene_fingerprint(env: str, preset: str) -> str:

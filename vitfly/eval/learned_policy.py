@@ -125,20 +125,27 @@ class LearnedPolicy:
             return self._bound_output(obs, depth, active, out)
         idx_np = np.flatnonzero(active)
         idx = torch.as_tensor(idx_np, dtype=torch.long, device=self.device)
-        d = torch.from_numpy(depth[idx_np]).to(self.device)[:, None, None]
+        d = torch.from_numpy(depth[idx_np]).to(self.device)
         s = torch.as_tensor(np.asarray(_obs_field(obs, "desired_speed"), np.float32)[idx_np], device=self.device)
         q = torch.as_tensor(np.asarray(_obs_field(obs, "quat"), np.float32)[idx_np], device=self.device)
-        all_active = len(idx_np) == n
+        out[idx_np] = self.network_rows(idx, d, s, q).double().cpu().numpy()
+        return out
+
+    def network_rows(self, idx: torch.Tensor, depth: torch.Tensor, speed: torch.Tensor,
+                     quat: torch.Tensor) -> torch.Tensor:
+        """Network output (K, 3) for the K envs ``idx`` (long, on ``self.device``), from their depth (K, H, W),
+        desired speed (K,) m/s and quat (K, 4), float32 on ``self.device``; advances their recurrent state."""
+        all_active = len(idx) == self.num_envs
         hidden_in = self._hidden if all_active else _select_hidden(self._hidden, idx)
-        pred, hidden_out = self._step(d, s.reshape(-1, 1, 1), q.reshape(-1, 1, 4), hidden_in)
+        pred, hidden_out = self._step(depth[:, None, None], speed.reshape(-1, 1, 1), quat.reshape(-1, 1, 4),
+                                      hidden_in)
         if self._hidden is not None and hidden_out is not None:
             if all_active:
                 self._hidden = tuple(h.clone() for h in hidden_out)
             else:
                 for h, h_new in zip(self._hidden, hidden_out, strict=True):
                     h[:, idx] = h_new
-        out[idx_np] = torch.as_tensor(pred).reshape(-1, 3).double().cpu().numpy()
-        return out
+        return torch.as_tensor(pred).reshape(-1, 3)
 
     def _bound_output(self, obs, depth: np.ndarray, active: np.ndarray, out: np.ndarray) -> np.ndarray:
         bound, n = self._bound, self.num_envs
@@ -162,6 +169,11 @@ class LearnedPolicy:
         out[idx] = np.asarray(pred).reshape(-1, 3)
         return out
 
+    def batched_twin(self) -> BatchedLearnedPolicy | None:
+        """This policy for the batched engine with tensors in and out (``vitfly.sim.batched.policies``), or None
+        when its step takes host arrays (ONNX Runtime): the engine's numpy adapter runs it then."""
+        return BatchedLearnedPolicy(self) if self._bind is None else None
+
     def __call__(self, obs) -> np.ndarray:
         x_m = None
         if self.takeoff_ramp:
@@ -170,6 +182,53 @@ class LearnedPolicy:
             x_m = np.asarray(_obs_field(obs, "position"), dtype=np.float64).reshape(-1, 3)[:, 0]
         raw = self.raw_output(obs)
         return deploy_command(raw, np.asarray(_obs_field(obs, "desired_speed"), dtype=np.float64), x_m)
+
+
+class BatchedLearnedPolicy:
+    """A :class:`LearnedPolicy` in the batched engine: the observation's tensors go from the engine's device to
+    the network's, the commands come back, with no trip through host memory (none at all when the engine and
+    the network share a card). The same inputs and deployment as the numpy path, in float64 torch."""
+
+    batched = True
+    needs_depth = True
+
+    def __init__(self, policy: LearnedPolicy):
+        self.policy = policy
+
+    def reset(self, num_envs: int) -> None:
+        self.policy.reset(num_envs)
+
+    def __call__(self, obs) -> torch.Tensor:
+        p = self.policy
+        n = obs.depth.shape[0]
+        if n != p.num_envs:
+            raise ValueError(f"policy was reset for {p.num_envs} envs but got observations of {n}")
+        raw = torch.zeros(n, 3, dtype=torch.float64, device=obs.depth.device)
+        active = obs.active
+        idx = torch.nonzero(active).flatten()
+        if len(idx):
+            f32 = dict(device=p.device, dtype=torch.float32)
+            rows = p.network_rows(idx.to(p.device), obs.depth[active].to(**f32), obs.desired_speed[active].to(**f32),
+                                  obs.quat[active].to(**f32))
+            raw[active] = rows.to(raw)
+        x_m = obs.position[:, 0].to(raw) if p.takeoff_ramp else None
+        return deploy_command_torch(raw, obs.desired_speed.to(raw), x_m).to(obs.position.dtype)
+
+
+def deploy_command_torch(raw: torch.Tensor, desired_speed_mps: torch.Tensor, x_m: torch.Tensor | None = None,
+                         ramp: ExpertConfig | None = None) -> torch.Tensor:
+    """:func:`deploy_command` on float64 tensors (N, 3), (N,), (N,), with the same operations in the same order."""
+    v = raw.clone()
+    v[:, 0] = v[:, 0].clamp(-1.0, 1.0)
+    norm = torch.sqrt(v[:, 0] * v[:, 0] + v[:, 1] * v[:, 1] + v[:, 2] * v[:, 2])[:, None]
+    ahead = torch.tensor([1.0, 0.0, 0.0], dtype=v.dtype, device=v.device)
+    unit = torch.where(norm > 1e-9, v / norm.clamp_min(1e-12), ahead)
+    command = unit * desired_speed_mps[:, None]
+    if x_m is not None:
+        cfg = ramp or ExpertConfig()
+        ramped = (x_m / cfg.ramp_distance_m * desired_speed_mps).clamp_min(cfg.ramp_min_speed_mps)
+        command[:, 0] = torch.where(x_m < cfg.ramp_distance_m, ramped, command[:, 0])
+    return command
 
 
 def _has(obs, name: str) -> bool:

@@ -78,11 +78,16 @@ def make_batches(specs: Sequence[TrialSpec], num_envs: int) -> list[list[TrialSp
 
 
 class TimedPolicy:
-    """Wraps a policy and books each call's wall time to the envs active in it (ms per env per tick)."""
+    """Wraps a policy and books each call's wall time to the envs active in it (ms per env per tick).
+
+    A batched policy (``batched`` true: the batched engine's tensors in and out) stays one; on a CUDA
+    device the call is timed to the end of its kernels, not to their launch.
+    """
 
     def __init__(self, policy):
         self.policy = policy
         self.needs_depth = bool(getattr(policy, "needs_depth", True))
+        self.batched = bool(getattr(policy, "batched", False))
 
     def reset(self, num_envs: int) -> None:
         self.policy.reset(num_envs)
@@ -93,8 +98,12 @@ class TimedPolicy:
     def __call__(self, obs):
         t0 = time.perf_counter()
         out = self.policy(obs)
+        if self.batched and obs.active.is_cuda:
+            import torch
+
+            torch.cuda.synchronize(obs.active.device)
         ms = 1e3 * (time.perf_counter() - t0)
-        active = np.flatnonzero(obs.active)
+        active = np.flatnonzero(obs.active.cpu().numpy() if self.batched else obs.active)
         if len(active):
             self.env_ms[active] += ms / len(active)
             self.call_ms[active] += ms
@@ -104,14 +113,13 @@ class TimedPolicy:
 
 def rollout_config(cfg: SweepConfig, record_depth: bool = False):
     from vitfly.eval.sensor import flight_sensor
-    from vitfly.sim.physics import resolve_physics
     from vitfly.sim.rollout import RolloutConfig, TaskConfig
     from vitfly.sim.sensor_models import sensor_from_dict
 
     task = TaskConfig() if cfg.timeout_s is None else TaskConfig(timeout_s=cfg.timeout_s, timeout_speed_factor=0.0)
     camera, control_hz = flight_sensor(cfg)
     return RolloutConfig(task=task, record_depth=record_depth, camera=camera, control_hz=control_hz,
-                         physics=resolve_physics(cfg.physics), sensor=sensor_from_dict(cfg.sensor))
+                         physics=cfg.engine.physics(cfg.physics), sensor=sensor_from_dict(cfg.sensor))
 
 
 def policy_source(cfg: SweepConfig) -> PolicySource:
@@ -121,15 +129,13 @@ def policy_source(cfg: SweepConfig) -> PolicySource:
 def sweep_identity(cfg: SweepConfig, source: PolicySource | None = None) -> SweepIdentity:
     """What this sweep flies, hashed (loads a checkpoint's network once; a bad file fails here)."""
     source = source or policy_source(cfg)
-    return SweepIdentity(policy_fingerprint(source), rollout_fingerprint(rollout_config(cfg)), int(cfg.seed),
-                         cfg.preset)
+    return SweepIdentity(policy_fingerprint(source), rollout_fingerprint(rollout_config(cfg), cfg.engine.key()),
+                         int(cfg.seed), cfg.preset)
 
 
 def record_from_result(spec: TrialSpec, label: str, result, cfg: SweepConfig, processing_ms: float,
                        call_ms: float, batch_size: int, setup: Setup) -> records.TrialRecord:
     """One trial record; metrics are computed from the rounded path as stored."""
-    from vitfly.sim.physics import resolve_physics
-
     log, summary = result.log, result.summary
     # the end state (the physics step that ended the trial) is where a goal crossing shows: no tick reaches it
     path = records.round_path(log.time, log.position, log.velocity, log.command, log.contact,
@@ -145,7 +151,8 @@ def record_from_result(spec: TrialSpec, label: str, result, cfg: SweepConfig, pr
         "policy_source": cfg.policy,
         "arch": cfg.arch,
         "backend": cfg.backend if cfg.policy not in ("expert", "straight") else None,
-        "physics": resolve_physics(cfg.physics),  # the rigid-body back end that flew it
+        "physics": cfg.engine.physics(cfg.physics),  # the rigid-body back end that flew it
+        "sim": cfg.engine.record(),  # the simulator engine that flew it (and its device and precision)
         "vitfly_version": __version__,
         "batch_size": batch_size,
         "batch_call_ms": call_ms,
@@ -171,12 +178,17 @@ def fly_batch(batch: Sequence[TrialSpec], policy, cfg: SweepConfig, out_file: Pa
     ``identity`` (what ``policy`` is, see ``sweep_identity``) keys the records; computed from ``cfg``
     when not given.
     """
-    from vitfly.sim.rollout import run_episodes
+    from vitfly.sim.engine import fly
     from vitfly.sim.scenes import make_scene
 
     identity = identity or sweep_identity(cfg)
     setups = {env: identity.setup(env) for env in {s.env for s in batch}}
     scenes = [make_scene(s.env, s.preset, s.scene_seed) for s in batch]
+    engine = cfg.engine
+    if engine.batched:  # the batched twin of the expert and straight flight, a learned policy's torch path
+        from vitfly.sim.batched.policies import as_batched_policy
+
+        policy = as_batched_policy(policy, compile=engine.compile)
     timed = TimedPolicy(policy)
 
     def finished(i: int, result) -> None:
@@ -187,7 +199,7 @@ def fly_batch(batch: Sequence[TrialSpec], policy, cfg: SweepConfig, out_file: Pa
         if on_trial is not None:
             on_trial(rec)
 
-    run_episodes(scenes, [s.speed for s in batch], timed, rollout_config(cfg), on_episode_end=finished)
+    fly(scenes, [s.speed for s in batch], timed, rollout_config(cfg), on_episode_end=finished, engine=engine)
     return len(batch)
 
 
@@ -245,12 +257,20 @@ def resolve_conflicts(cfg: SweepConfig, identity: SweepIdentity) -> int:
     if not cfg.overwrite:
         first = stale[0]
         diff = "; ".join(differences(first.setup, identity.setup(first.env).to_dict())) or "setup"
+        was, now = (first.extra or {}).get("sim", {"engine": "numpy"}), cfg.engine.record()
+        if was != now:  # the engine hides in the rollout id: say it plainly
+            diff += f" (simulator {_engine_text(was)}, now {_engine_text(now)})"
         raise VitflyError(
             f"{cfg.out}: {len(stale)} trials of {cfg.label!r} there were flown with another {diff}; "
             "evaluate into a new --out, give this run another --name, or pass --overwrite to replace them")
     stale_ids = {(r.env, r.setup_id) for r in stale}
     return sum(records.remove_records(p, lambda r: r.policy == cfg.label and (r.env, r.setup_id) in stale_ids)
                for p in records.iter_trial_files(cfg.out))
+
+
+def _engine_text(sim: dict) -> str:
+    return " ".join([str(sim[k]) for k in ("engine", "device", "dtype") if k in sim] + ["compiled"] * bool(
+        sim.get("compile")))
 
 
 def pending_trials(cfg: SweepConfig, identity: SweepIdentity) -> tuple[list[TrialSpec], int]:

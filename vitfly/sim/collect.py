@@ -44,9 +44,9 @@ from vitfly.datamodules.schema import TrajectoryRecord, TrajectoryWriter, check_
 from vitfly.errors import VitflyError
 from vitfly.packaged import config_path
 from vitfly.sim.camera import CameraConfig, expand_camera_preset
-from vitfly.sim.physics import resolve_physics
+from vitfly.sim.engine import SimEngine, fly
 from vitfly.sim.policies import ExpertPolicy
-from vitfly.sim.rollout import RolloutConfig, TaskConfig, run_episodes
+from vitfly.sim.rollout import EpisodeResult, RolloutConfig, TaskConfig
 from vitfly.sim.scenes import ENVS, make_scene, scene_config
 from vitfly.sim.sensor_models import StereoDepthConfig, sensor_from_dict
 
@@ -74,6 +74,17 @@ class CollectConfig:
     physics: str = "auto"  # "pybullet", "native" or "auto"; stored concrete (resolve_physics) with the data
     # a stereo sensor model on the camera's render (YAML ``sensor: {model: d435, ...}``, flag --sensor); None: ideal
     sensor: StereoDepthConfig | None = None
+    # the simulator engine (vitfly.sim.engine): "numpy", or "batched" flying num_envs trajectories in lockstep
+    # on sim_device in sim_dtype; stored with the data when batched
+    sim: str = "numpy"
+    sim_device: str = "cpu"
+    sim_dtype: str = "float64"
+    sim_compile: bool = False  # the batched engine's kernels through torch.compile
+    num_envs: int = 8  # the batched engine's lockstep batch (the data does not depend on it)
+
+    @property
+    def engine(self) -> SimEngine:
+        return SimEngine(self.sim, self.sim_device, self.sim_dtype, self.sim_compile)
 
     def validate(self, source: str = "config") -> CollectConfig:
         if self.env not in ENVS:
@@ -84,13 +95,20 @@ class CollectConfig:
             raise VitflyError(f"{source}: field speeds is [{lo}, {hi}]; expected 0 < min <= max (m/s)")
         if self.trajectories < 1:
             raise VitflyError(f"{source}: field trajectories is {self.trajectories}; expected >= 1")
-        if self.workers < 1:
-            raise VitflyError(f"{source}: field workers is {self.workers}; expected >= 1")
+        for name in ("workers", "num_envs"):
+            if getattr(self, name) < 1:
+                raise VitflyError(f"{source}: field {name} is {getattr(self, name)}; expected >= 1")
+        self.engine.validate(source)
+        if self.engine.batched and self.workers > 1:  # one process batches the trajectories on one device
+            raise VitflyError(f"{source}: field workers is {self.workers} with sim batched, which flies num_envs "
+                              "trajectories at once in one process; use workers 1")
+        if self.engine.batched and self.sensor is not None:  # the batched camera has no sensor model yet
+            raise VitflyError(f"{source}: field sensor: sensor models run on the numpy engine only (sim: numpy)")
         check_depth_compression(self.depth_compression, f"{source}: field depth_compression")
         x0, x1 = self.log_x_range_m
         if not x0 < x1:
             raise VitflyError(f"{source}: field log_x_range_m is [{x0}, {x1}]; expected min < max (m)")
-        resolve_physics(self.physics, f"{source}: field physics")
+        self.engine.physics(self.physics, f"{source}: field physics")
         try:
             self.rollout_config().physics_steps_per_tick  # noqa: B018 - validates the rates
             self.camera.validate("camera.")
@@ -120,8 +138,11 @@ class CollectConfig:
     def content_key(self) -> dict:
         """The fields that decide the data (not how many trajectories, workers, nor the storage)."""
         d = dataclasses.asdict(self)
-        for key in ("trajectories", "workers", "depth_compression"):
+        for key in ("trajectories", "workers", "depth_compression", "num_envs", "sim", "sim_device", "sim_dtype",
+                    "sim_compile"):
             d.pop(key)
+        if self.engine.batched:  # absent for the numpy engine: its datasets keep the bytes of before the choice
+            d["sim"] = self.engine.key()
         d["speeds"] = list(d["speeds"])
         d["log_x_range_m"] = list(d["log_x_range_m"])
         d["camera"]["mount_offset_m"] = list(d["camera"]["mount_offset_m"])
@@ -150,7 +171,7 @@ def load_collect_config(path: str | os.PathLike | None, overrides: dict[str, Any
         if value is not None:
             data[key] = value
     config = _from_mapping(CollectConfig, data, source, "").validate(source)
-    return dataclasses.replace(config, physics=resolve_physics(config.physics, f"{source}: field physics"))
+    return dataclasses.replace(config, physics=config.engine.physics(config.physics, f"{source}: field physics"))
 
 
 def _from_mapping(cls, data: dict, source: str, prefix: str):
@@ -221,9 +242,24 @@ def trajectory_spec(seed: int, index: int, speeds: tuple[float, float]) -> tuple
 
 def fly_trajectory(config: CollectConfig, index: int) -> TrajectoryRecord:
     """Fly the expert on trajectory ``index`` of ``config`` and return its dataset record."""
-    scene_seed, speed = trajectory_spec(config.seed, index, config.speeds)
-    scene = make_scene(config.env, config.preset, scene_seed)
-    result = run_episodes([scene], [speed], ExpertPolicy(), config.rollout_config())[0]
+    return fly_trajectories(config, [index])[0]
+
+
+def fly_trajectories(config: CollectConfig, indices: list[int]) -> list[TrajectoryRecord]:
+    """Fly the expert on trajectories ``indices`` of ``config`` in lockstep on its engine; their records in order.
+
+    Each trajectory's flight depends on its own scene and speed only (and its camera draws on its scene
+    seed), so flying them together gives what flying each alone gives.
+    """
+    specs = [trajectory_spec(config.seed, k, config.speeds) for k in indices]
+    scenes = [make_scene(config.env, config.preset, scene_seed) for scene_seed, _ in specs]
+    results = fly(scenes, [speed for _, speed in specs], ExpertPolicy(), config.rollout_config(),
+                  engine=config.engine)
+    return [_record(config, speed, result) for (_, speed), result in zip(specs, results, strict=True)]
+
+
+def _record(config: CollectConfig, speed: float, result: EpisodeResult) -> TrajectoryRecord:
+    """A flown trajectory's dataset record: the logged ticks, and the whole flight's outcome."""
     log, summary = result.log, result.summary
     rows = config.logged_ticks(log.position[:, 0])
     return TrajectoryRecord(
@@ -236,7 +272,7 @@ def fly_trajectory(config: CollectConfig, index: int) -> TrajectoryRecord:
         time=log.time[rows],
         collision=log.contact[rows],
         env=config.env,
-        seed=scene_seed,
+        seed=result.scene.seed,
         n_collisions=summary.n_collisions,  # the whole flight, not only the logged ticks
         success=summary.success,
     )
@@ -283,7 +319,12 @@ def start_pool(workers: int) -> ProcessPoolExecutor | None:
 def ordered_records(
     config: CollectConfig, indices: list[int], pool: ProcessPoolExecutor | None
 ) -> Iterator[TrajectoryRecord]:
-    """Records for ``indices`` in index order, flown here or by the pool's workers."""
+    """Records for ``indices`` in index order, flown here or by the pool's workers (the batched engine:
+    ``num_envs`` at a time, here)."""
+    if config.engine.batched:
+        for start in range(0, len(indices), config.num_envs):
+            yield from fly_trajectories(config, indices[start : start + config.num_envs])
+        return
     if pool is None:
         for k in indices:
             yield fly_trajectory(config, k)
@@ -310,7 +351,7 @@ def collect(config: CollectConfig, out: str | os.PathLike, progress: bool = True
     """Fly ``config.trajectories`` expert trajectories into ``out`` (created, or resumed)."""
     out = Path(out)
     config.validate()
-    config = dataclasses.replace(config, physics=resolve_physics(config.physics))  # the dataset names it
+    config = dataclasses.replace(config, physics=config.engine.physics(config.physics))  # the dataset names it
     meta = {"made_by": "vitfly collect", "collect": config.content_key()}
     start = time.perf_counter()
     pool = start_pool(config.workers)

@@ -215,7 +215,9 @@ def check_config(cfg: DaggerConfig, source: str) -> None:
     for key in d.collect:
         if key in RESERVED_COLLECT_KEYS:
             raise VitflyError(f"{source}: data.collect.{key} is set by the workflow; use {RESERVED_COLLECT_KEYS[key]}")
-    base_collect(cfg, source)  # the collect YAML and its overrides are valid
+    if base_collect(cfg, source).engine.batched:  # the collect YAML and its overrides are valid
+        raise VitflyError(f"{source}: data.collect.sim is 'batched', but dagger flies its rounds (expert-student "
+                          "mixtures) with the numpy engine; use sim numpy")
     if t.model not in list_models():
         raise VitflyError(f"{source}: train.model {t.model!r} unknown; known: {', '.join(list_models())}")
     if t.epochs < 1 or t.finetune_epochs < 1:

@@ -59,6 +59,10 @@ class EvalStage:
     timeout_s: float | None = None
     device: str = "cpu"  # torch device of learned policies
     physics: str = "auto"  # rigid-body back end: pybullet, native or auto
+    sim: str = "numpy"  # simulator engine: numpy or batched (vitfly.sim.engine)
+    sim_device: str = "cpu"  # the batched engine's device
+    sim_dtype: str = "float64"  # the batched engine's precision
+    sim_compile: bool = False  # the batched engine's kernels through torch.compile
 
 
 @dataclass
@@ -117,7 +121,8 @@ def sweep_config(e: EvalStage, out_dir: str | Path, policy: str, name: str | Non
     return SweepConfig(policy=policy, name=name, env=list(e.env), preset=e.preset, speeds=list(e.speeds),
                        trials=e.trials, seed=e.seed, out=str(out_dir), num_envs=e.num_envs, workers=e.workers,
                        threads=e.threads, backend=e.backend, timeout_s=e.timeout_s, gif=gif, plots=False,
-                       overwrite=True, device=e.device, physics=e.physics)
+                       overwrite=True, device=e.device, physics=e.physics, sim=e.sim, sim_device=e.sim_device,
+                       sim_dtype=e.sim_dtype, sim_compile=e.sim_compile)
 
 
 def stage_collect(collect_config: str | None, overrides: dict, data: str | Path, progress: bool = True) -> dict:

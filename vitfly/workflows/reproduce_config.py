@@ -63,6 +63,10 @@ class ReproduceEvaluate:
     backend: str = "eager"
     device: str = "cpu"
     timeout_s: float | None = None
+    sim: str = "numpy"  # simulator engine of the sweeps: numpy or batched (vitfly.sim.engine)
+    sim_device: str = "cpu"  # the batched engine's device
+    sim_dtype: str = "float64"  # the batched engine's precision
+    sim_compile: bool = False  # the batched engine's kernels through torch.compile
 
 
 @dataclass
@@ -305,7 +309,8 @@ def eval_stage(cfg: ReproduceConfig, env: list[str], speeds: list[float], trials
     e = cfg.evaluate
     return EvalStage(env=env, preset=e.preset, speeds=list(speeds), trials=trials, seed=e.seed,
                      num_envs=e.num_envs, workers=e.workers, threads=e.threads, backend=e.backend,
-                     timeout_s=e.timeout_s, device=e.device)
+                     timeout_s=e.timeout_s, device=e.device, sim=e.sim, sim_device=e.sim_device, sim_dtype=e.sim_dtype,
+                     sim_compile=e.sim_compile)
 
 
 def paths_plan(cfg: ReproduceConfig):

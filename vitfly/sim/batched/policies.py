@@ -10,11 +10,12 @@ policies into their batched twins and wraps every other policy in :class:`NumpyP
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import lru_cache
 
 import numpy as np
 import torch
 
-from vitfly.sim.batched.expert import expert_commands
+from vitfly.sim.batched.expert import blocked_lines, expert_commands
 from vitfly.sim.batched.scenes import SceneBatch
 from vitfly.sim.expert import ExpertConfig
 from vitfly.sim.policies import ExpertPolicy, StraightPolicy
@@ -114,11 +115,23 @@ class NumpyPolicy:
         return torch.as_tensor(np.asarray(out, dtype=np.float64), **like)
 
 
-def as_batched_policy(policy):
+@lru_cache(maxsize=1)
+def _compiled_blocked_lines():
+    return torch.compile(blocked_lines, dynamic=True)
+
+
+def as_batched_policy(policy, compile: bool = False):
     """``policy`` for the batched engine: batched policies as they are, the numpy expert and straight
-    flight as their batched twins (same commands), any other policy through :class:`NumpyPolicy`."""
+    flight as their batched twins (same commands), a policy's own ``batched_twin()`` where it gives one
+    (e.g. ``vitfly.eval.learned_policy.LearnedPolicy``), any other policy through :class:`NumpyPolicy`.
+    ``compile``: the expert's line test through ``torch.compile`` (its hot kernel)."""
+    if compile and type(policy) in (ExpertPolicy, BatchedExpert):
+        return BatchedExpert(policy.config, blocked=_compiled_blocked_lines())
     if getattr(policy, "batched", False):
         return policy
+    twin = getattr(policy, "batched_twin", None)  # a policy's own tensor path (a learned policy's network)
+    if twin is not None and (batched := twin()) is not None:
+        return batched
     if type(policy) is ExpertPolicy:
         return BatchedExpert(policy.config)
     if type(policy) is StraightPolicy:

@@ -28,8 +28,7 @@ from vitfly.sim.batched.camera import BatchedCamera
 from vitfly.sim.batched.contact import in_contact, nearby
 from vitfly.sim.batched.controller import velocity_control
 from vitfly.sim.batched.dynamics import DroneTensors, hover_state, physics_step
-from vitfly.sim.batched.expert import blocked_lines
-from vitfly.sim.batched.policies import BatchedExpert, BatchedObservation, as_batched_policy
+from vitfly.sim.batched.policies import BatchedObservation, as_batched_policy
 from vitfly.sim.batched.scenes import SceneBatch, scene_batch
 from vitfly.sim.rollout import EpisodeLog, EpisodeResult, EpisodeSummary, RolloutConfig
 from vitfly.sim.scenes import Scene
@@ -158,9 +157,7 @@ def run_batched(
     like = dict(dtype=st.dtype, device=torch.device(st.device))
     batch = batch if batch is not None else scene_batch(scenes, st.device, st.dtype)
     camera = BatchedCamera(cfg.camera, st.device, st.dtype, compile=_compiler(st, dynamic=True))
-    policy = as_batched_policy(policy)
-    if st.compile and type(policy) is BatchedExpert:
-        policy = BatchedExpert(policy.config, blocked=torch.compile(blocked_lines, dynamic=True))
+    policy = as_batched_policy(policy, compile=st.compile)
     needs_depth = bool(getattr(policy, "needs_depth", True)) or cfg.record_depth
     substep = torch.compile(_substep) if st.compile else _substep
     noisy = cfg.camera.noise_std_m > 0.0 or cfg.camera.dropout_prob > 0.0
