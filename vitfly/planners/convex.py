@@ -23,7 +23,7 @@ from vitfly.planners.trajectory import Plan, limit_feasibility
 
 @dataclass(frozen=True)
 class ConvexSettings:
-    speed_mps: float = 3.0  # design speed
+    speed_mps: float = 3.0  # design speed (set from PlannerOptions.design_speed_mps)
     accel_max_mps2: float = 4.0  # braking: speed <= sqrt(2 a d) with d the distance to the target
     seed_length_m: float = 4.0
     seed_yaw_deg: tuple[float, ...] = tuple(float(a) for a in range(-60, 61, 10))

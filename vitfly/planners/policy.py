@@ -88,7 +88,7 @@ def _from_mapping(cls, data, source: str, prefix: str = ""):
     values = {}
     for key, value in data.items():
         if key not in hints:
-            raise VitflyError(f"{source}: unknown field {prefix}{key!r}; known: {', '.join(sorted(hints))}")
+            raise VitflyError(f"{source}: unknown field '{prefix}{key}'; known: {', '.join(sorted(hints))}")
         values[key] = _check_value(value, hints[key], source, f"{prefix}{key}")
     return cls(**values)
 
@@ -147,6 +147,11 @@ class _EnvState:
     next_replan_s: float = 0.0
 
 
+def _promote_if_ready(env: _EnvState, now_s: float) -> None:
+    if env.pending is not None and now_s >= env.pending_ready_s - 1e-9:
+        env.plan, env.pending = env.pending, None
+
+
 class ModularPolicy:
     """Perception -> map -> plan -> track for every active env (``vitfly.sim.rollout.Policy``).
 
@@ -179,6 +184,7 @@ class ModularPolicy:
             env, now = self._envs[i], float(obs.time[i])
             points = depth_to_world_points(obs.depth[i], obs.position[i], rotations[i], self.camera, o.map.depth_stride)
             env.local_map.insert(points, now, obs.position[i])
+            _promote_if_ready(env, now)  # a plan that finished frees the planner for this tick
             if env.pending is None and now >= env.next_replan_s - 1e-9:
                 start = time.perf_counter()
                 plan = self.plan(env.local_map, obs.position[i], obs.velocity[i])
@@ -187,8 +193,7 @@ class ModularPolicy:
                 env.pending = plan if plan is not None else stop_plan(obs.position[i])
                 env.pending_ready_s = now + (compute_s if o.fixed_latency_s is None else o.fixed_latency_s)
                 env.next_replan_s = now + 1.0 / o.replan_hz
-            if env.pending is not None and now >= env.pending_ready_s - 1e-9:
-                env.plan, env.pending = env.pending, None
+            _promote_if_ready(env, now)  # with zero latency, this tick's plan
             if env.plan is None:
                 continue  # nothing planned yet: hover
             command = track(env.plan, obs.position[i], o.position_gain_per_s, o.lookahead_s)

@@ -19,7 +19,7 @@ from vitfly.planners.trajectory import Plan, limit_feasibility, smooth_through_w
 
 @dataclass(frozen=True)
 class SearchSettings:
-    speed_mps: float = 3.0  # design speed: the search aims for it, the smoothing limits to it
+    speed_mps: float = 3.0  # design speed (set from PlannerOptions.design_speed_mps): aimed for, and the limit
     accel_max_mps2: float = 4.0
     primitive_s: float = 0.5  # duration of one constant-acceleration primitive
     levels: int = 3  # primitives per trajectory (horizon = levels * primitive_s)
