@@ -187,7 +187,10 @@ class ModularPolicy:
             _promote_if_ready(env, now)  # a plan that finished frees the planner for this tick
             if env.pending is None and now >= env.next_replan_s - 1e-9:
                 start = time.perf_counter()
-                plan = self.plan(env.local_map, obs.position[i], obs.velocity[i])
+                velocity = obs.velocity[i]
+                if o.scaled:  # the planner thinks at its design speed: the flown velocity, scaled back
+                    velocity = velocity * o.design_speed_mps / float(obs.desired_speed[i])
+                plan = self.plan(env.local_map, obs.position[i], velocity)
                 compute_s = time.perf_counter() - start
                 self.replan_ms.append(1e3 * compute_s)
                 env.pending = plan if plan is not None else stop_plan(obs.position[i])

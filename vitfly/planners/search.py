@@ -68,7 +68,9 @@ def kinodynamic_search(local_map: LocalMap, position_m, velocity_mps, goal_direc
         y, z = samples[..., 1], samples[..., 2]
         ok = (
             (clearance >= s.margin_m)
-            & (np.linalg.norm(v_end, axis=2) <= s.speed_mps * 1.05)
+            # over the design speed only while slowing down (the drone may start faster than it)
+            & ((np.linalg.norm(v_end, axis=2) <= s.speed_mps * 1.05)
+               | (np.linalg.norm(v_end, axis=2) < np.linalg.norm(v, axis=1)[:, None]))
             & np.all((z >= s.z_min_m) & (z <= s.z_max_m) & (np.abs(y) <= s.y_abs_max_m), axis=2)
         )
         if not ok.any():
