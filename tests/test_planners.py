@@ -174,6 +174,8 @@ def test_bad_planner_options_are_one_clear_line(tmp_path):
         "fastplanner: {search: {home_yz_m: [1, 2, 3]}}": "field 'search.home_yz_m' must be a list of 2 numbers",
         "common: {replan_hz: -1}\nfastplanner: {}": "field 'replan_hz' must be > 0",
         "convex: {}": "no planner 'fastplanner'",
+        "fastplanner: {search: {speed_mps: 5}}": "'search.speed_mps' is set by 'design_speed_mps'",
+        "fastplanner: {map: {voxel_m: 0}}": "field 'map.voxel_m' must be > 0",
     }
     for text, expected in cases.items():
         path.write_text(text)

@@ -68,6 +68,12 @@ class PlannerOptions:
         for name in ("design_speed_mps", "replan_hz"):
             if not getattr(self, name) > 0:
                 raise VitflyError(f"{source}: field {name!r} must be > 0, got {getattr(self, name)}")
+        for section in ("search", "convex"):  # one speed for both methods: the design speed
+            if getattr(self, section).speed_mps != 3.0:
+                raise VitflyError(f"{source}: field '{section}.speed_mps' is set by 'design_speed_mps'; set that")
+        for name in ("voxel_m", "memory_s", "depth_stride", "max_points"):
+            if not getattr(self.map, name) > 0:
+                raise VitflyError(f"{source}: field 'map.{name}' must be > 0, got {getattr(self.map, name)}")
         if self.fixed_latency_s is not None and self.fixed_latency_s < 0:
             raise VitflyError(f"{source}: field 'fixed_latency_s' must be >= 0 s or null, got {self.fixed_latency_s}")
         return self
