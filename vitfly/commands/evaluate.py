@@ -17,7 +17,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--config", help="evaluation YAML: a path, or a shipped config's name (e.g. eval/spheres); "
                         "flags override it")
     parser.add_argument("--policy", help="a checkpoint path, 'pretrained:NAME' (shipped weights, e.g. "
-                        "pretrained:vit_lstm), 'expert' or 'straight' (config default: expert)")
+                        "pretrained:vit_lstm), 'modular:NAME' (a modular baseline: fastplanner, fastplanner_scaled, "
+                        "convex, convex_scaled), 'expert' or 'straight' (config default: expert)")
+    parser.add_argument("--planner-config", help="modular:NAME: planners YAML, a path or a shipped config's name "
+                        "(default: planners, i.e. configs/planners.yaml)")
     parser.add_argument("--arch", help="architecture of an original-project checkpoint (e.g. vit_lstm)")
     parser.add_argument("--name", help="policy label in the reports (default: expert/straight/checkpoint stem)")
     parser.add_argument("--env", nargs="+", choices=ENVS, help="environment(s) (config default: spheres)")
@@ -95,6 +98,7 @@ def run(args: argparse.Namespace) -> int:
                                               "backend", "physics", "sim", "sim_device", "sim_dtype", "sim_compile",
                                               "timeout_s",
                                               "wandb_project", "control_hz", "depth_max_m", "override_sensor")}
+    overrides["planner_config"] = args.planner_config
     overrides["camera"] = dict(args.camera) if args.camera else None
     try:
         overrides["sensor"] = sensor_flag_values(args.sensor)
@@ -105,10 +109,11 @@ def run(args: argparse.Namespace) -> int:
     overrides["overwrite"] = True if args.overwrite else None
     cfg = load_sweep_config(args.config, overrides)
     if not (args.merge or args.report_only):
-        source = PolicySource(cfg.policy, cfg.arch)
+        source = PolicySource(cfg.policy, cfg.arch, planner_config=cfg.planner_config)
         source.check()
         cfg, note = resolve_sensor(cfg, source.trained_sensor(), cfg.policy)
-        if not source.is_builtin:  # the built-in policies fly the defaults or the options, nothing to report
+        # the built-in policies and the planners fly the defaults or the options, nothing to report
+        if not (source.is_builtin or source.is_modular):
             print(note)
     if args.merge or args.report_only:
         if args.merge:

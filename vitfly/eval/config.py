@@ -23,9 +23,10 @@ BACKENDS = ("eager", "compiled", "onnxruntime", "onnxruntime-int8")  # compiled:
 class SweepConfig:
     """One policy flown over envs x speeds x trials. Units: m/s for speeds, s for times."""
 
-    policy: str = "expert"  # a checkpoint path, "pretrained:NAME", "expert" or "straight"
+    policy: str = "expert"  # a checkpoint path, "pretrained:NAME", "modular:NAME", "expert" or "straight"
+    planner_config: str | None = None  # modular:NAME: planners YAML (default: the shipped configs/planners.yaml)
     arch: str | None = None  # architecture of an original-project checkpoint
-    name: str | None = None  # label in reports; default: "expert", "straight", NAME of pretrained:NAME or the
+    name: str | None = None  # label in reports; default: "expert", "straight", NAME of pretrained:/modular:NAME or the
     # checkpoint's stem
     env: list[str] = field(default_factory=lambda: ["spheres"])
     preset: str = "medium"  # scene density preset
@@ -97,7 +98,7 @@ class SweepConfig:
             return self.name
         if self.policy in ("expert", "straight"):
             return self.policy
-        if self.policy.startswith("pretrained:"):
+        if self.policy.startswith(("pretrained:", "modular:")):
             return self.policy.split(":", 1)[1]
         return Path(self.policy).stem
 

@@ -2,7 +2,8 @@
 
 - ``policy_id``: for a learned policy, the network's weights (every state-dict tensor: name, dtype,
   shape, bytes), its modules' classes and plain options (e.g. ``use_state``, layer sizes) and the
-  inference back end; for ``expert``, its ``ExpertConfig``; for ``straight``, its class alone;
+  inference back end; for ``expert``, its ``ExpertConfig``; for ``straight``, its class alone; for
+  ``modular:NAME``, the planner's options and the planners' code version;
 - ``rollout_id``: the rollout settings (physics back end, physics and control rates, camera, task
   with its timeout and body radius, airframe, controller gains; not whether depth frames are kept)
   and the simulator engine when it is not the numpy one (``vitfly.sim.engine.SimEngine.key``);
@@ -84,6 +85,11 @@ def policy_fingerprint(source) -> str:
         policy = source.build()
         config = getattr(policy, "config", None)
         return digest({"builtin": source.spec, "class": type(policy).__qualname__, "config": config})
+    if source.is_modular:
+        from vitfly.planners.policy import PLANNERS_CODE_VERSION
+
+        return digest({"modular": source.spec, "options": source.planner_options(),
+                       "code_version": PLANNERS_CODE_VERSION})
     return digest({"network": network_fingerprint(source.load_network()), "backend": source.backend})
 
 

@@ -1,8 +1,9 @@
 """What ``--policy`` names, as a picklable recipe that each worker process builds once.
 
 ``expert`` and ``straight`` are the simulator's built-in policies; ``pretrained:NAME`` is a network
-published in the weights directory (``vitfly.zoo.pretrained``); anything else is a checkpoint path: a
-vitfly/Lightning checkpoint, or an original-project state dict with ``arch``.
+published in the weights directory (``vitfly.zoo.pretrained``); ``modular:NAME`` is one of the modular
+baselines (``vitfly.planners``, options from ``planner_config`` or the shipped ``configs/planners.yaml``);
+anything else is a checkpoint path: a vitfly/Lightning checkpoint, or an original-project state dict with ``arch``.
 """
 
 from __future__ import annotations
@@ -11,8 +12,10 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from vitfly.errors import VitflyError
+from vitfly.sim.camera import CameraConfig
 
 BUILTIN = ("expert", "straight")
+MODULAR_PREFIX = "modular:"
 
 
 @dataclass(frozen=True)
@@ -22,10 +25,22 @@ class PolicySource:
     backend: str = "eager"  # "eager", "compiled", "onnxruntime" or "onnxruntime-int8" (learned policies)
     device: str = "cpu"  # the learned policy's network: "cpu" or "cuda[:N]"
     threads: int = 1  # ONNX Runtime intra-op threads
+    planner_config: str | None = None  # modular:NAME: the planners YAML (None: the shipped configs/planners.yaml)
+    camera: CameraConfig | None = None  # modular:NAME: the camera flown with (its rays back-project the depth)
 
     @property
     def is_builtin(self) -> bool:
         return self.spec in BUILTIN
+
+    @property
+    def is_modular(self) -> bool:
+        return self.spec.startswith(MODULAR_PREFIX)
+
+    def planner_options(self):
+        """The ``PlannerOptions`` of ``modular:NAME`` (one VitflyError line for an unknown name or a bad option)."""
+        from vitfly.planners import load_planner_options
+
+        return load_planner_options(self.spec[len(MODULAR_PREFIX):], self.planner_config)
 
     @property
     def is_pretrained(self) -> bool:
@@ -39,6 +54,13 @@ class PolicySource:
             if self.arch is not None:
                 raise VitflyError(f"--arch {self.arch} only applies to checkpoints, not to policy {self.spec!r}")
             return
+        if self.is_modular:
+            if self.arch is not None:
+                raise VitflyError(f"--arch {self.arch} only applies to checkpoints, not to policy {self.spec!r}")
+            self.planner_options()
+            return
+        if self.planner_config is not None:
+            raise VitflyError(f"--planner-config only applies to modular:NAME policies, not to {self.spec!r}")
         if self.is_pretrained:
             if self.arch is not None:
                 raise VitflyError(f"--arch {self.arch} only applies to original checkpoints, not to {self.spec}")
@@ -54,8 +76,8 @@ class PolicySource:
 
     def trained_sensor(self) -> dict | None:
         """The sensor a checkpoint was trained with ({depth_max_m, camera, control_hz}); None for the built-in
-        policies and for checkpoints that do not record one."""
-        if self.is_builtin:
+        policies, the modular planners and for checkpoints that do not record one."""
+        if self.is_builtin or self.is_modular:
             return None
         if self.is_pretrained:  # published weights carry their checkpoint's sensor in the manifest
             from vitfly.zoo.pretrained import manifest_entry, pretrained_name
@@ -76,6 +98,10 @@ class PolicySource:
             from vitfly.sim.policies import make_builtin_policy
 
             return make_builtin_policy(self.spec)
+        if self.is_modular:
+            from vitfly.planners import ModularPolicy
+
+            return ModularPolicy(self.planner_options(), self.camera)
         from vitfly.eval.learned_policy import LearnedPolicy
 
         net = self.load_network()

@@ -123,7 +123,9 @@ def rollout_config(cfg: SweepConfig, record_depth: bool = False):
 
 
 def policy_source(cfg: SweepConfig) -> PolicySource:
-    return PolicySource(cfg.policy, cfg.arch, cfg.backend, cfg.device, cfg.threads)
+    # a modular planner back-projects depth with the camera it flies with
+    camera = rollout_config(cfg).camera if cfg.policy.startswith("modular:") else None
+    return PolicySource(cfg.policy, cfg.arch, cfg.backend, cfg.device, cfg.threads, cfg.planner_config, camera)
 
 
 def sweep_identity(cfg: SweepConfig, source: PolicySource | None = None) -> SweepIdentity:

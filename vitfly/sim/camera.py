@@ -174,6 +174,12 @@ class DepthCamera:
         self._win_size = np.array([[cfg.width], [cfg.width], [cfg.height], [cfg.height]], dtype=np.float64)
 
     @property
+    def ray_directions_body(self) -> np.ndarray:
+        """(H, W, 3) body-frame direction of each pixel's ray, scaled to a unit forward (x) component, so that
+        ``mount_offset_m + planar_depth_m * ray`` is the hit point in the body frame (inverse of rendering)."""
+        return np.stack([np.ones_like(self._u), self._u, self._v], axis=-1)
+
+    @property
     def vertical_fov_deg(self) -> float:
         return math.degrees(2 * math.atan(self._tan_v))
 
