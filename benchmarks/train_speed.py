@@ -109,6 +109,18 @@ def measure_steps(
     dev = torch.device(device)
     autocast = torch.autocast(dev.type, dtype=torch.bfloat16) if mode.endswith("bf16") else contextlib.nullcontext()
 
+    one_batch = train_batch_fn(module, optimizer, data, autocast, dev)
+    median_s, warmup_s = time_batches(one_batch, warmup, iters)
+    return {"fps": batch * steps / median_s, "warmup_s": warmup_s}
+
+
+def train_batch_fn(module, optimizer, data: dict, autocast, dev, clip: float | None = None):
+    """One batch as the module trains it: uint8 depth to [0, 1], one optimiser step per TBPTT chunk (gradient
+    norm clipped to ``clip`` when set), the recurrent state carried across chunks, detached."""
+    import torch
+
+    from vitfly.zoo.policy import detach_hidden
+
     def one_batch() -> None:
         chunk_batch = dict(data)
         chunk_batch["depth"] = chunk_batch["depth"].to(torch.float32).mul_(1.0 / 255.0)
@@ -118,13 +130,14 @@ def measure_steps(
                 loss, hidden = module.chunk_loss(chunk, hidden)
             optimizer.zero_grad()
             loss.backward()
+            if clip:
+                torch.nn.utils.clip_grad_norm_(module.parameters(), clip)
             optimizer.step()
-            hidden = None if hidden is None else tuple(h.detach() for h in hidden)
+            hidden = detach_hidden(hidden)
         if dev.type == "cuda":
             torch.cuda.synchronize()
 
-    median_s, warmup_s = time_batches(one_batch, warmup, iters)
-    return {"fps": batch * steps / median_s, "warmup_s": warmup_s}
+    return one_batch
 
 
 def time_batches(one_batch, warmup: int, iters: int) -> tuple[float, float]:
@@ -152,7 +165,7 @@ def measure_arm(
 
     if threads:
         torch.set_num_threads(threads)
-    from vitfly.zoo.policy import create_policy, detach_hidden
+    from vitfly.zoo.policy import create_policy
 
     torch.manual_seed(0)
     module = create_policy(model, **policy_kwargs).to(device)
@@ -167,21 +180,7 @@ def measure_arm(
     autocast = torch.autocast(dev.type, dtype=torch.bfloat16) if precision == "bf16" else contextlib.nullcontext()
     clip = policy_kwargs.get("gradient_clip_val")
 
-    def one_batch() -> None:
-        chunk_batch = dict(data)
-        chunk_batch["depth"] = chunk_batch["depth"].to(torch.float32).mul_(1.0 / 255.0)
-        hidden = None
-        for chunk in module.tbptt_chunks(chunk_batch):
-            with autocast:
-                loss, hidden = module.chunk_loss(chunk, hidden)
-            optimizer.zero_grad()
-            loss.backward()
-            if clip:
-                torch.nn.utils.clip_grad_norm_(module.parameters(), clip)
-            optimizer.step()
-            hidden = detach_hidden(hidden)
-        if dev.type == "cuda":
-            torch.cuda.synchronize()
+    one_batch = train_batch_fn(module, optimizer, data, autocast, dev, clip)
 
     median_s, warmup_s = time_batches(one_batch, warmup, iters)
     from torch._dynamo.utils import counters
