@@ -262,3 +262,20 @@ def test_reduce_overhead_runs_eagerly_off_cuda(dataset_path):
     with pytest.warns(RuntimeWarning, match="reduce-overhead \\(CUDA graphs\\) needs a CUDA device"):
         steps = chunk_results(graphs, pad_to_bucket(batch, 8))
     assert_same_steps(chunk_results(reference, batch), steps)
+
+
+def test_backends_that_generate_no_code_need_no_cxx_compiler(monkeypatch):
+    """aot_eager and eager need no C++ compiler (the Docker image has none): only inductor falls back to eager."""
+    import shutil
+
+    from vitfly.zoo import create_model
+
+    monkeypatch.setattr(shutil, "which", lambda _name: None)
+    monkeypatch.delenv("CXX", raising=False)
+    frames = torch.rand(3, 1, 60, 90)
+    traced = compile_encoder(create_model("convnet").eval(), backend="aot_eager")
+    inductor = compile_encoder(create_model("convnet").eval())
+    with torch.no_grad():
+        traced.encode(frames)
+        inductor.encode(frames)
+    assert not traced.encode.failed and inductor.encode.failed

@@ -74,12 +74,14 @@ class _CompiledOrEager:
     ``cuda_only``: off CUDA, call the eager function (one warning per device type).
     """
 
-    def __init__(self, eager: Callable, compiled: Callable, name: str, cuda_only: bool = False) -> None:
+    def __init__(self, eager: Callable, compiled: Callable, name: str, cuda_only: bool = False,
+                 generates_code: bool = True) -> None:
         self.eager = eager
         self.compiled = compiled
         self.name = name
         self.failed = False
         self.cuda_only = cuda_only
+        self.generates_code = generates_code  # inductor needs a C++ compiler / Triton; aot_eager and eager do not
 
     def __call__(self, frames: torch.Tensor) -> torch.Tensor:
         if self.failed:
@@ -88,7 +90,7 @@ class _CompiledOrEager:
             _warn_once(f"torch.compile mode reduce-overhead (CUDA graphs) needs a CUDA device; {self.name} runs "
                        f"eagerly on {frames.device.type}")
             return self.eager(frames)
-        reason = compiler_missing(frames.device.type)
+        reason = compiler_missing(frames.device.type) if self.generates_code else None
         if reason is not None:
             self._fall_back(reason)
             return self.eager(frames)
@@ -118,7 +120,8 @@ def compile_encoder(net: nn.Module, **compile_kwargs) -> nn.Module:
         return net
     name = f"{type(net).__name__}.encode"
     cuda_only = compile_kwargs.get("mode") in CUDA_ONLY_MODES
-    net.encode = _CompiledOrEager(encode, torch.compile(encode, **compile_kwargs), name, cuda_only)
+    generates_code = compile_kwargs.get("backend", "inductor") == "inductor"
+    net.encode = _CompiledOrEager(encode, torch.compile(encode, **compile_kwargs), name, cuda_only, generates_code)
     return net
 
 
