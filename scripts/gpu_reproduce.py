@@ -573,10 +573,10 @@ def preset_flags(p: argparse.ArgumentParser, required: bool) -> None:
 
 
 def main(argv: list[str] | None = None) -> int:
-    """The old command line: ``scripts/gpu_reproduce.py ARGS`` is ``scripts/gpu.py ARGS``."""
-    from scripts.gpu import main as gpu_main
-
-    return gpu_main(sys.argv[1:] if argv is None else argv)
+    """The old command line: ``scripts/gpu_reproduce.py ARGS`` is ``scripts/gpu.py ARGS``.
+    Handed over as a process: ``gpu.py`` imports this module, which so never imports it back."""
+    args = sys.argv[1:] if argv is None else argv
+    return subprocess.run([sys.executable, str(ROOT / "scripts" / "gpu.py"), *args]).returncode
 
 
 if __name__ == "__main__":

@@ -303,10 +303,10 @@ def study(args: argparse.Namespace) -> int:
 
 
 def main(argv: list[str] | None = None) -> int:
-    """The old command line: ``scripts/gpu_study.py ARGS`` is ``scripts/gpu.py study ARGS``."""
-    from scripts.gpu import main as gpu_main
-
-    return gpu_main(["study", *(sys.argv[1:] if argv is None else argv)])
+    """The old command line: ``scripts/gpu_study.py ARGS`` is ``scripts/gpu.py study ARGS``.
+    Handed over as a process: ``gpu.py`` imports this module, which so never imports it back."""
+    args = sys.argv[1:] if argv is None else argv
+    return subprocess.run([sys.executable, str(ROOT / "scripts" / "gpu.py"), "study", *args]).returncode
 
 
 if __name__ == "__main__":

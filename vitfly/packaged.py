@@ -138,3 +138,17 @@ def shipped_configs() -> list[ShippedConfig]:
 def version_line() -> str:
     """What ``vitfly --version`` prints: ``vitfly X.Y.Z from DIR (Python X.Y.Z)``."""
     return f"vitfly {__version__} from {PACKAGE_DIR} (Python {platform.python_version()})"
+
+
+def read_yaml(path: str | Path) -> dict:
+    """A config file's mapping (safe YAML); a missing file or bad YAML is one line naming the file."""
+    import yaml
+
+    path = Path(path)
+    try:
+        data = yaml.safe_load(path.read_text())
+    except FileNotFoundError:
+        raise VitflyError(f"{path}: config file not found") from None
+    except yaml.YAMLError as err:
+        raise VitflyError(f"{path}: not valid YAML ({str(err).splitlines()[0]})") from None
+    return data or {}

@@ -9,10 +9,8 @@ import typing
 from dataclasses import dataclass, field, fields
 from pathlib import Path
 
-import yaml
-
 from vitfly.errors import VitflyError
-from vitfly.packaged import config_path
+from vitfly.packaged import config_path, read_yaml
 
 ENVS = ("spheres", "trees", "window", "course")
 # inference back ends of learned policies: eager PyTorch, ONNX Runtime float32, ONNX Runtime with int8 products
@@ -148,17 +146,6 @@ def dataclass_from_dict(cls, data: dict, source: str):
     if unknown:
         raise VitflyError(f"{source}: unknown field {unknown[0]!r}; known fields: {', '.join(sorted(known))}")
     return cls(**{k: _check_type(v, hints[k], source, k) for k, v in data.items()})
-
-
-def read_yaml(path: str | Path) -> dict:
-    path = Path(path)
-    try:
-        data = yaml.safe_load(path.read_text())
-    except FileNotFoundError:
-        raise VitflyError(f"{path}: config file not found") from None
-    except yaml.YAMLError as err:
-        raise VitflyError(f"{path}: not valid YAML ({str(err).splitlines()[0]})") from None
-    return data or {}
 
 
 def load_sweep_config(path: str | Path | None = None, overrides: dict | None = None) -> SweepConfig:

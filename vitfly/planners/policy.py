@@ -124,8 +124,7 @@ def _check_value(value, hint, source: str, name: str):
 def load_planner_options(name: str, path: str | Path | None = None) -> PlannerOptions:
     """Options of planner ``name`` from a planners YAML (default: the shipped ``configs/planners.yaml``):
     its ``common`` mapping, then the mapping under ``name`` (wins)."""
-    from vitfly.eval.config import read_yaml
-    from vitfly.packaged import config_path
+    from vitfly.packaged import config_path, read_yaml
 
     file = config_path(path or DEFAULT_CONFIG)
     data = read_yaml(file)

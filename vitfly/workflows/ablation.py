@@ -20,9 +20,9 @@ from pathlib import Path
 
 from vitfly.atomic import write_text
 from vitfly.errors import VitflyError
-from vitfly.eval.config import dataclass_from_dict, read_yaml
+from vitfly.eval.config import dataclass_from_dict
 from vitfly.eval.paper_tables import ABLATION_ENVS, ABLATION_SPEEDS, MODEL_LABELS, paper_success
-from vitfly.packaged import config_path
+from vitfly.packaged import config_path, read_yaml
 from vitfly.workflows.pipeline import EvalStage, TrainStage, stage_collect, stage_evaluate, stage_train
 
 

@@ -26,8 +26,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from vitfly.errors import VitflyError
-from vitfly.eval.config import dataclass_from_dict, read_yaml
-from vitfly.packaged import config_path
+from vitfly.eval.config import dataclass_from_dict
+from vitfly.packaged import config_path, read_yaml
 
 TRAIN_SEEDS = range(0, 1000)  # collection seeds of every DAgger and baseline flight
 EVAL_SEED_MIN = 1000  # evaluation sweep seeds (vitfly evaluate / reproduce / pipeline use 1000)

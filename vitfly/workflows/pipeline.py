@@ -24,8 +24,8 @@ from pathlib import Path
 
 from vitfly.atomic import write_text
 from vitfly.errors import VitflyError
-from vitfly.eval.config import SweepConfig, dataclass_from_dict, read_yaml
-from vitfly.packaged import config_path
+from vitfly.eval.config import SweepConfig, dataclass_from_dict
+from vitfly.packaged import config_path, read_yaml
 
 
 @dataclass

@@ -18,8 +18,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from vitfly.errors import VitflyError
-from vitfly.eval.config import dataclass_from_dict, read_yaml
-from vitfly.packaged import config_path
+from vitfly.eval.config import dataclass_from_dict
+from vitfly.packaged import config_path, read_yaml
 from vitfly.workflows.pipeline import EvalStage, TrainStage
 
 PAPER_MODELS = ["convnet", "lstmnet", "unet_lstm", "vit", "vit_lstm"]
