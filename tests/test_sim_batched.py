@@ -30,13 +30,7 @@ F64 = torch.float64
 TOL_M = 1e-6  # depth (m) and states: the bound; measured gaps are ~1e-13
 
 
-@pytest.fixture(autouse=True)
-def one_thread():
-    # the engine's small ops gain nothing from threads, and a busy machine makes them wait
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
 def random_poses(env, scenes, rng):

@@ -19,12 +19,7 @@ FAST = ["--timeout", "3.0", "--speeds", "7", "--trials", "2", "--preset", "hard"
 TIMING = {"processing_ms"}  # wall-clock metrics: differ between any two runs
 
 
-@pytest.fixture(autouse=True)
-def one_thread():
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
 def evaluate(out, *args):
