@@ -64,7 +64,7 @@ def two_epochs(tmp_path_factory) -> Path:
 
 
 def test_runs_trained_elsewhere_come_back_as_done(tmp_path, data, capsys):
-    gpu = load_script("gpu_reproduce")
+    gpu = load_script("gpu")  # the one entry point (gpu_reproduce.py hands over to it)
     run_dir, out = tmp_path / "run", tmp_path / "back"
     where = ["--preset", "tiny", "--run-dir", str(run_dir), "--data", str(data)]
     train = ["train", *where, "--out", str(out), "--work", str(tmp_path / "work"), "--collect-workers", "1",
@@ -126,7 +126,7 @@ def assert_same_training(a: Path, b: Path) -> None:
 
 
 def test_a_run_stopped_in_one_slot_resumes_in_the_next_exactly(tmp_path, data, two_epochs, capsys):
-    gpu = load_script("gpu_reproduce")
+    gpu = load_script("gpu")
     common = ["--config", str(two_epochs), "--preset", "tiny", "--data", str(data)]
     slot = ["--work", str(tmp_path / "work"), "--collect-workers", "1", "--threads", "1"]
     data_hash = dataset_fingerprint(data)["dataset_hash"]
