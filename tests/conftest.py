@@ -1,7 +1,17 @@
 """Fixtures shared by several test files."""
 
+import os
+
 import pytest
 import torch
+
+
+def pytest_configure(config):
+    """Under pytest-xdist (`-n auto`), share the cores among the workers: each worker's torch would
+    otherwise start one thread per core, and the oversubscribed threads wait for each other."""
+    workers = int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "0"))
+    if workers > 1:
+        torch.set_num_threads(max(1, (os.cpu_count() or 1) // workers))
 
 
 @pytest.fixture
