@@ -1,0 +1,43 @@
+"""benchmarks/sim_agreement.py's pairing and counting, on hand-made records (no flight)."""
+
+import importlib.util
+from pathlib import Path
+
+import pytest
+
+from vitfly.eval.records import TrialRecord
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+@pytest.fixture(scope="module")
+def bench():
+    spec = importlib.util.spec_from_file_location("sim_agreement", REPO / "benchmarks" / "sim_agreement.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def rec(label, trial, success=True, goal=True, collisions=0, speed=3.0):
+    return TrialRecord(policy=label, env="spheres", speed=speed, trial=trial, scene_seed=trial,
+                       success_paper=success, success_strict=success and goal, reached_goal=goal,
+                       end_reason="goal" if goal else "timeout", metrics={"collisions": collisions}, path={},
+                       setup={}, setup_id="s")
+
+
+def test_agreement_counts_outcomes_pair_by_pair(bench):
+    f64 = [rec("expert-float64", 0), rec("expert-float64", 1, success=False, collisions=1),
+           rec("expert-float64", 2, success=False, collisions=1), rec("expert-float64", 3),
+           rec("expert-float64", 4, speed=5.0)]
+    # trial 1: same outcome; trial 2: two collisions instead of one (disagrees, success alike);
+    # trial 3: float32 collides (a success flip); trial 4 at 5 m/s: goal missed (disagrees); trial 9 unpaired
+    f32 = [rec("expert-float32", 0), rec("expert-float32", 1, success=False, collisions=1),
+           rec("expert-float32", 2, success=False, collisions=2), rec("expert-float32", 3, success=False, collisions=1),
+           rec("expert-float32", 4, goal=False, speed=5.0), rec("expert-float32", 9)]
+    row = bench.agreement(f64 + f32, "expert")
+    assert (row["pairs"], row["agree"]) == (5, 2)
+    assert row["agreement"] == pytest.approx(0.4)
+    assert row["success_flips"] == {"float64 succeeds, float32 not": 1}
+    assert row["success_float64"] == pytest.approx(3 / 5) and row["success_float32"] == pytest.approx(2 / 5)
+    # Clopper-Pearson for 2 of 5 (from beta quantiles): 0.0527 .. 0.8534
+    assert row["ci95"] == pytest.approx([0.05274, 0.85337], abs=1e-4)
