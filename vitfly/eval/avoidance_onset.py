@@ -228,6 +228,8 @@ def onset_finding(sweeps: dict[str, Sequence[TrialRecord]], a: str = "vit_lstm",
         pooled = paired_onset(onsets, a, b)
         means = {pol: {f"{sp:g}": float(np.mean([o.distance_m for (p, s, _), o in onsets.items() if p == pol
                                                   and s == sp])) for sp in speeds} for pol in policies}
+        for pol in policies:
+            means[pol]["all"] = float(np.mean([o.distance_m for (p, _, _), o in onsets.items() if p == pol]))
         floors = {}
         for pol in policies:
             values = []
@@ -249,13 +251,18 @@ def onset_finding(sweeps: dict[str, Sequence[TrialRecord]], a: str = "vit_lstm",
 def onset_markdown(finding: dict) -> str:
     """The finding as Markdown: one row per (sensor, speed) and pooled, then the verdict."""
     a, b = finding["a"], finding["b"]
-    lines = [f"| depth | speed | {a} onset (m) | {b} onset (m) | {a} - {b} [95 %], pairs | departed {a} / {b} |",
-             "|---|---|---:|---:|---|---:|"]
+    others = sorted({p for s in finding["sensors"].values() for p in s["mean_onset_m"]} - {a, b})
+    lines = [f"| depth | speed | {a} onset (m) | {b} onset (m) | {a} - {b} [95 %], pairs | departed {a} / {b} |"
+             + "".join(f" {p} onset (m) |" for p in others),
+             "|---|---|---:|---:|---|---:|" + "---:|" * len(others)]
     for sensor, s in finding["sensors"].items():
-        for d in [*s["per_speed"], *([s["pooled"]] if s["pooled"] else [])]:
-            speed = "all" if len(d["speeds"]) > 1 else f"{d['speeds'][0]:g} m/s"
+        rows = [*s["per_speed"], *([s["pooled"]] if s["pooled"] and len(s["per_speed"]) > 1 else [])]
+        for d in rows:
+            key = "all" if len(d["speeds"]) > 1 else f"{d['speeds'][0]:g}"
+            speed = key if key == "all" else f"{key} m/s"
+            extra = "".join(f" {s['mean_onset_m'].get(p, {}).get(key, math.nan):.2f} |" for p in others)
             lines.append(f"| {sensor} | {speed} | {d['mean_a_m']:.2f} | {d['mean_b_m']:.2f} | {d['diff_m']:+.2f} "
                          f"[{d['low_m']:+.2f}, {d['high_m']:+.2f}], {d['pairs']} | "
-                         f"{100 * d['departed_a']:.0f} % / {100 * d['departed_b']:.0f} % |")
+                         f"{100 * d['departed_a']:.0f} % / {100 * d['departed_b']:.0f} % |{extra}")
     lines.append(f"\nVerdict: **{finding['verdict']}** ({finding['why']}). Rule: {finding['rule']}.")
     return "\n".join(lines) + "\n"
