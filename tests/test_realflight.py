@@ -154,3 +154,12 @@ def test_onboard_budget_script_on_a_tiny_setting(tmp_path, capsys, one_torch_thr
     assert "| convnet | total |" in capsys.readouterr().out
     assert bench.main(["--models", "resnet18", "--ticks", "1"]) == 2
     assert "'resnet18' is not shipped" in capsys.readouterr().err
+
+
+def test_explain_trials_refuses_a_map_a_policy_cannot_make(tmp_path, capsys):
+    out = tmp_path / "out"
+    assert main(["explain", "--policy", "random:convnet", "random:convnet", "--trials", "2", "--compare-map",
+                 "attention", "--out", str(out)]) == 2  # fmt: skip
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "--compare-map attention: convnet (random weights) has no such map" in err[0]
+    assert not out.exists()

@@ -116,6 +116,8 @@ def run(args: argparse.Namespace) -> int:
         raise VitflyError("--data replays one recorded trajectory; --trials and --stop-past-obstacles apply to flown "
                           "trials")
     policies = load_policies(args.policy, args.name, args.init_seed)
+    if args.trials > 1:
+        _check_compare_map(args.compare_map, policies)
     edge_config = EdgeConfig(jump_m=args.edge_jump, width_px=args.edge_width)
     if args.data is not None:
         frames = _recorded_frames(args, edge_config)
@@ -137,6 +139,20 @@ def run(args: argparse.Namespace) -> int:
     if args.trials > 1:
         _study(args, policies, edge_config, result)
     return 0
+
+
+def _check_compare_map(kind: str, policies) -> None:
+    """One line, before anything is flown, when a policy cannot make the map kind the comparison uses."""
+    from vitfly.errors import VitflyError
+    from vitfly.eval.explain.maps import GRADCAM_MAPS, attention_layers, spatial_layers
+
+    for p in policies:
+        stages = len(attention_layers(p.net))
+        kinds = (list(GRADCAM_MAPS) if spatial_layers(p.net) else []) + (
+            ["attention", *(f"attention_stage{i}" for i in range(stages))] if stages else [])
+        if kind not in kinds:
+            raise VitflyError(f"--compare-map {kind}: {p.label} has no such map (it has {', '.join(kinds)}); "
+                              "compare a map kind every --policy has")
 
 
 def _study(args, policies, edge_config, first) -> None:
