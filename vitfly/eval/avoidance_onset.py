@@ -8,8 +8,9 @@ to the obstacle's surface at that tick. A larger onset distance is an earlier av
 - **Threshold**: |v_y command| > ``threshold_fraction`` x desired speed, 0.1 by default (a heading 5.7 degrees
   off the line; 0.3 m/s at 3 m/s, 0.7 m/s at 7 m/s). The deployment normalises every command to the desired
   speed, so a fraction of the speed is the same turn at every speed. In empty space the shipped networks'
-  lateral commands stay below 0.02 x speed (99th percentile; ``straight_floor`` measures it past the obstacle),
-  so 0.1 is five times that floor, clear of noise, and well below a real avoidance (0.3-0.6 x speed).
+  lateral commands stay below 0.02 x speed with exact depth (99th percentile; ``straight_floor`` measures it past
+  the obstacle), so 0.1 is five times that floor and well below a real avoidance (0.3-0.6 x speed). With the
+  D435 model ConvNet's floor rises to about 0.1 (docs/results.md): check the floor before trusting an onset.
 - **Distance**: Euclidean, from the drone's centre to the nearest point of the obstacle's solid (cylinder: radial
   and vertical excess; box: per-axis excess), 0 inside. The columns are 8 m tall and the drone flies at about
   3.5 m, so this is the horizontal distance to the surface.
