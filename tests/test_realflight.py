@@ -163,3 +163,25 @@ def test_explain_trials_refuses_a_map_a_policy_cannot_make(tmp_path, capsys):
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "--compare-map attention: convnet (random weights) has no such map" in err[0]
     assert not out.exists()
+
+
+def test_flown_frames_through_the_d435_model_keep_exact_edges():
+    from vitfly.eval.explain import fly_trial
+    from vitfly.sim.policies import ExpertPolicy
+    from vitfly.sim.rollout import RolloutConfig, TaskConfig
+    from vitfly.sim.scenes import make_scene
+    from vitfly.sim.sensor_models import StereoDepthConfig
+
+    cfg = RolloutConfig(sensor=StereoDepthConfig(), task=TaskConfig(timeout_s=0.2, timeout_speed_factor=0.0))
+    frames = fly_trial(make_scene("course", "easy", 2), 5.0, ExpertPolicy(), "expert", cfg)  # a column 6 m ahead
+    # the top-left corner looks at the sky (the column is in the middle): no reading, which the deployment sets to
+    # 0.8 (the clean render reads 1.0 there)
+    np.testing.assert_array_equal(frames.depth[:, 0, :10], np.float32(0.8))
+    assert frames.edge_source == "scene" and frames.info["sensor"] == "d435" and frames.edges[0].any()
+
+
+def test_explain_bad_sensor_field_is_one_line(tmp_path, capsys):
+    out = tmp_path / "out"
+    assert main(["explain", "--policy", "random:convnet", "--sensor", "d435", "baseline_m=-1", "--out", str(out)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "sensor.baseline_m" in err[0] and not out.exists()

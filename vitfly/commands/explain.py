@@ -8,7 +8,7 @@ import argparse
 
 from vitfly.sim.scenes import ENVS, PRESETS
 
-SIM_FLAGS = ("env", "preset", "seed", "speed", "pilot")
+SIM_FLAGS = ("env", "preset", "seed", "speed", "pilot", "sensor")
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -24,6 +24,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     sim.add_argument("--speed", type=float, help="desired speed, m/s (default 5)")
     sim.add_argument("--pilot", choices=("expert", "straight", "policy"),
                      help="who flies: the expert, straight ahead, or the first --policy (default expert)")
+    sim.add_argument("--sensor", nargs="+", metavar="MODEL|FIELD=VALUE",
+                     help="stereo sensor model on the rendered depth, e.g. --sensor d435 (vitfly.sim.sensor_models; "
+                     "the models see its frames; edges stay exact, from the scene)")
     data = parser.add_argument_group("or replay a recorded trajectory")
     data.add_argument("--data", help="a vitfly HDF5 dataset")
     data.add_argument("--trajectory", type=int, default=0, help="trajectory index in --data")
@@ -70,6 +73,7 @@ def _flown_frames(args, policies, edge_config, seed=None):
     from vitfly.eval.explain import fly_trial
     from vitfly.eval.learned_policy import LearnedPolicy
     from vitfly.sim.policies import make_builtin_policy
+    from vitfly.sim.rollout import RolloutConfig
     from vitfly.sim.scenes import make_scene
 
     speed = 5.0 if args.speed is None else args.speed
@@ -83,7 +87,7 @@ def _flown_frames(args, policies, edge_config, seed=None):
     if seed is None:
         seed = 0 if args.seed is None else args.seed
     scene = make_scene(args.env or "spheres", args.preset or "medium", seed)
-    frames = fly_trial(scene, speed, pilot, pilot_name, edge_config=edge_config)
+    frames = fly_trial(scene, speed, pilot, pilot_name, RolloutConfig(sensor=_sensor(args)), edge_config)
     if args.stop_past_obstacles:
         from vitfly.eval.explain.study import ticks_before_passing
 
@@ -91,6 +95,17 @@ def _flown_frames(args, policies, edge_config, seed=None):
     if args.max_ticks is not None:
         frames = frames.head(args.max_ticks)
     return frames
+
+
+def _sensor(args):
+    """The ``--sensor`` model (None: the ideal camera); a bad field or value is one VitflyError line."""
+    from vitfly.errors import VitflyError
+    from vitfly.sim.sensor_models import sensor_flag_values, sensor_from_dict
+
+    try:
+        return sensor_from_dict(sensor_flag_values(args.sensor))
+    except ValueError as err:
+        raise VitflyError(f"--sensor: {err}") from None
 
 
 def _number(v, fmt: str) -> str:
@@ -115,6 +130,8 @@ def run(args: argparse.Namespace) -> int:
     if args.data is not None and (args.trials > 1 or args.stop_past_obstacles):
         raise VitflyError("--data replays one recorded trajectory; --trials and --stop-past-obstacles apply to flown "
                           "trials")
+    if args.data is None:
+        _sensor(args)  # a bad --sensor is one line before anything loads or flies
     policies = load_policies(args.policy, args.name, args.init_seed)
     if args.trials > 1:
         _check_compare_map(args.compare_map, policies)
