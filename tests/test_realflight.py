@@ -4,6 +4,7 @@ the onboard budget script, each on worked cases."""
 from __future__ import annotations
 
 import csv
+import dataclasses
 import importlib.util
 import json
 import math
@@ -185,3 +186,56 @@ def test_explain_bad_sensor_field_is_one_line(tmp_path, capsys):
     assert main(["explain", "--policy", "random:convnet", "--sensor", "d435", "baseline_m=-1", "--out", str(out)]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "sensor.baseline_m" in err[0] and not out.exists()
+
+
+def _script(name):
+    spec = importlib.util.spec_from_file_location(name, REPO / "scripts" / f"{name}.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def test_map_finding_decides_the_claims_of_both_depths_together(tmp_path, capsys):
+    def paired(path, sides):
+        comparisons = [{"a": "ViT+LSTM", "b": "ConvNet", "metric": m, "map_kind": "command", "diff": 0.1,
+                        "low": lo, "high": hi, "trials": 20, "side": side}
+                       for m, (lo, hi, side) in zip(("consistency", "edge_lift"), sides, strict=True)]
+        path.write_text(json.dumps({"findings": [{"a": "ViT+LSTM", "b": "ConvNet", "comparisons": comparisons}]}))
+        return str(path)
+
+    exact = paired(tmp_path / "e.json", [(-0.1, 0.2, "undecided"), (0.1, 0.5, "for")])
+    d435 = paired(tmp_path / "d.json", [(0.05, 0.1, "for"), (-0.2, 0.3, "undecided")])
+    out = tmp_path / "finding.json"
+    assert _script("map_finding").main(["--paired", "exact", exact, "--paired", "d435", d435, "--out", str(out)]) == 0
+    assert json.loads(out.read_text())["verdict"] == "partly"  # 2 of 4 for, none against
+    assert "verdict: partly (2 of 4 claims decided for, 0 against)" in capsys.readouterr().out
+
+
+def test_avoidance_onset_script_names_a_missing_sweep(tmp_path, capsys):
+    assert _script("avoidance_onset").main(["--sweep", "exact", str(tmp_path / "nope")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "nope/trials.jsonl: missing" in err[0]
+
+
+def test_onset_finding_from_records_on_a_course_box():
+    from vitfly.eval.avoidance_onset import onset_finding, onset_markdown
+    from vitfly.eval.records import TrialRecord, round_path
+
+    # course/easy seed 3 is one box, x 14.287..15.282 m, y -0.645..0.350 m, z 0..8 m: on the line at z 3.5 m the
+    # distance to it is 14.287 - x. "a" turns at x = 10 m (4.287 m), "b" at x = 12 m (2.287 m): a - b = 2 m exactly
+    xs = np.concatenate([np.arange(0.0, 15.0), [21.0]])  # x = 21 m: more than 5 m past the far face (floor tick)
+
+    def record(policy, turn_x):
+        t, pos, cmd = _straight_path(xs, np.where((xs >= turn_x) & (xs < 15), 1.0, 0.0))
+        cmd[-1, 1] = 0.03  # empty space: 0.01 x the speed
+        return TrialRecord(policy, "course", 3.0, 0, 3, True, True, True, "goal", {},
+                           round_path(t, pos, cmd, cmd, np.zeros(len(xs), bool)), {}, "x", preset="easy")
+
+    f = onset_finding({"exact": [record("a", 10.0), record("b", 12.0)]}, "a", "b")
+    s = f["sensors"]["exact"]
+    assert s["mean_onset_m"]["a"]["3"] == pytest.approx(14.28709738 - 10) and s["pooled"]["pairs"] == 1
+    assert s["pooled"]["diff_m"] == pytest.approx(2.0) and s["straight_floor"]["a"] == {"p99": 0.01, "ticks": 1}
+    assert f["verdict"] == "reproduced" and "| exact | 3 m/s | 4.29 | 2.29 | +2.00 [+2.00, +2.00], 1 |" in \
+        onset_markdown(f)
+    with pytest.raises(VitflyError, match="has 6 obstacles"):
+        onset_finding({"exact": [dataclasses.replace(record("a", 10.0), preset="hard", scene_seed=2)]}, "a", "b")
