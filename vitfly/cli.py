@@ -29,7 +29,7 @@ SUBCOMMANDS: dict[str, tuple[str, str]] = {
     "convert-checkpoint": ("convert_checkpoint", "turn an original-project state dict into a vitfly checkpoint"),
     "export": ("export", "export a network for deployment (ONNX)"),
     "render": ("render", "draw a scene, a flown path and depth frames to PNG/GIF"),
-    "explain": ("explain", "attention and Grad-CAM maps of networks over one trial (PNG, GIF, consistency numbers)"),
+    "explain": ("explain", "Grad-CAM and attention maps over one trial or N paired ones (PNG, GIF, numbers)"),
     "pipeline": ("pipeline", "the main job: collect if missing, train, fly against expert and straight, report"),
     "reproduce": ("reproduce", "the paper's results section: data, 11 trainings, every evaluation, results.md"),
     "dagger": ("dagger", "DAgger with the privileged expert beside behaviour cloning at equal labelled frames"),

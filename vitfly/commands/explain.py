@@ -1,4 +1,6 @@
-"""``vitfly explain``: what the networks look at over one trial (maps, PNG strips, GIFs, numbers)."""
+"""``vitfly explain``: what the networks look at over one trial (maps, PNG strips, GIFs, numbers); with ``--trials N``
+the numbers over N flown trials (scene seeds ``--seed`` .. ``--seed`` + N - 1, the figures of the first) and every
+model paired with the first ``--policy`` (``vitfly.eval.explain.study``)."""
 
 from __future__ import annotations
 
@@ -6,7 +8,7 @@ import argparse
 
 from vitfly.sim.scenes import ENVS, PRESETS
 
-SIM_FLAGS = ("env", "preset", "seed", "speed", "pilot")
+SIM_FLAGS = ("env", "preset", "seed", "speed", "pilot", "sensor")
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -22,9 +24,20 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     sim.add_argument("--speed", type=float, help="desired speed, m/s (default 5)")
     sim.add_argument("--pilot", choices=("expert", "straight", "policy"),
                      help="who flies: the expert, straight ahead, or the first --policy (default expert)")
+    sim.add_argument("--sensor", nargs="+", metavar="MODEL|FIELD=VALUE",
+                     help="stereo sensor model on the rendered depth, e.g. --sensor d435 (vitfly.sim.sensor_models; "
+                     "the models see its frames; edges stay exact, from the scene)")
     data = parser.add_argument_group("or replay a recorded trajectory")
     data.add_argument("--data", help="a vitfly HDF5 dataset")
     data.add_argument("--trajectory", type=int, default=0, help="trajectory index in --data")
+    study = parser.add_argument_group("several trials, paired (flown trials only)")
+    study.add_argument("--trials", type=int, default=1,
+                       help="fly N trials (scene seeds --seed .. --seed + N - 1): figures of the first, numbers of all "
+                       "in trials.csv, each model minus the first --policy in paired.json / paired.md")
+    study.add_argument("--stop-past-obstacles", action="store_true",
+                       help="explain each trial only until the drone has passed every obstacle's far face")
+    study.add_argument("--compare-map", default="command",
+                       help="the map kind the paired comparison uses (the same for both models)")
     parser.add_argument("--frames", type=int, default=8, help="ticks in the PNG strips (evenly spread)")
     parser.add_argument("--ticks", type=int, nargs="+", help="explicit ticks for the PNG strips")
     parser.add_argument("--max-ticks", type=int, help="explain only the first N ticks of the trial")
@@ -55,11 +68,12 @@ def _recorded_frames(args, edge_config):
                                    **meta})  # fmt: skip
 
 
-def _flown_frames(args, policies, edge_config):
+def _flown_frames(args, policies, edge_config, seed=None):
     from vitfly.errors import VitflyError
     from vitfly.eval.explain import fly_trial
     from vitfly.eval.learned_policy import LearnedPolicy
     from vitfly.sim.policies import make_builtin_policy
+    from vitfly.sim.rollout import RolloutConfig
     from vitfly.sim.scenes import make_scene
 
     speed = 5.0 if args.speed is None else args.speed
@@ -70,8 +84,28 @@ def _flown_frames(args, policies, edge_config):
         pilot, pilot_name = LearnedPolicy(policies[0].net, device=args.device), policies[0].label
     else:
         pilot = make_builtin_policy(pilot_name)
-    scene = make_scene(args.env or "spheres", args.preset or "medium", 0 if args.seed is None else args.seed)
-    return fly_trial(scene, speed, pilot, pilot_name, edge_config=edge_config)
+    if seed is None:
+        seed = 0 if args.seed is None else args.seed
+    scene = make_scene(args.env or "spheres", args.preset or "medium", seed)
+    frames = fly_trial(scene, speed, pilot, pilot_name, RolloutConfig(sensor=_sensor(args)), edge_config)
+    if args.stop_past_obstacles:
+        from vitfly.eval.explain.study import ticks_before_passing
+
+        frames = frames.head(max(ticks_before_passing(frames, scene), 2))
+    if args.max_ticks is not None:
+        frames = frames.head(args.max_ticks)
+    return frames
+
+
+def _sensor(args):
+    """The ``--sensor`` model (None: the ideal camera); a bad field or value is one VitflyError line."""
+    from vitfly.errors import VitflyError
+    from vitfly.sim.sensor_models import sensor_flag_values, sensor_from_dict
+
+    try:
+        return sensor_from_dict(sensor_flag_values(args.sensor))
+    except ValueError as err:
+        raise VitflyError(f"--sensor: {err}") from None
 
 
 def _number(v, fmt: str) -> str:
@@ -91,14 +125,23 @@ def run(args: argparse.Namespace) -> int:
         raise VitflyError("--edge-jump must be > 0 m and --edge-width >= 0 pixels")
     if args.max_ticks is not None and args.max_ticks < 2:
         raise VitflyError(f"--max-ticks must be >= 2, got {args.max_ticks}")
+    if args.trials < 1:
+        raise VitflyError(f"--trials must be >= 1, got {args.trials}")
+    if args.data is not None and (args.trials > 1 or args.stop_past_obstacles):
+        raise VitflyError("--data replays one recorded trajectory; --trials and --stop-past-obstacles apply to flown "
+                          "trials")
+    if args.data is None:
+        _sensor(args)  # a bad --sensor is one line before anything loads or flies
     policies = load_policies(args.policy, args.name, args.init_seed)
+    if args.trials > 1:
+        _check_compare_map(args.compare_map, policies)
     edge_config = EdgeConfig(jump_m=args.edge_jump, width_px=args.edge_width)
     if args.data is not None:
         frames = _recorded_frames(args, edge_config)
+        if args.max_ticks is not None:
+            frames = frames.head(args.max_ticks)
     else:
         frames = _flown_frames(args, policies, edge_config)
-    if args.max_ticks is not None:
-        frames = frames.head(args.max_ticks)
     print(frames.title)
     if frames.info.get("edge_note"):
         print(f"note: {frames.info['edge_note']}")
@@ -110,4 +153,58 @@ def run(args: argparse.Namespace) -> int:
                                                    ("edge_area_share", "9.3f"), ("edge_lift", "5.2f"))]
         print(f"{r['model']:<28} {r['map']:<18} " + " ".join(cells))
     print("wrote " + ", ".join(str(p) for p in result.files.values()))
+    if args.trials > 1:
+        _study(args, policies, edge_config, result)
     return 0
+
+
+def _check_compare_map(kind: str, policies) -> None:
+    """One line, before anything is flown, when a policy cannot make the map kind the comparison uses."""
+    from vitfly.errors import VitflyError
+    from vitfly.eval.explain.maps import GRADCAM_MAPS, attention_layers, spatial_layers
+
+    for p in policies:
+        stages = len(attention_layers(p.net))
+        kinds = (list(GRADCAM_MAPS) if spatial_layers(p.net) else []) + (
+            ["attention", *(f"attention_stage{i}" for i in range(stages))] if stages else [])
+        if kind not in kinds:
+            raise VitflyError(f"--compare-map {kind}: {p.label} has no such map (it has {', '.join(kinds)}); "
+                              "compare a map kind every --policy has")
+
+
+def _study(args, policies, edge_config, first) -> None:
+    """Trials 2..N, the per-trial numbers (trials.csv) and each model minus the first (paired.json, paired.md)."""
+    import csv
+    import io
+    import json
+    from pathlib import Path
+
+    from vitfly.atomic import write_text
+    from vitfly.eval.explain.study import TRIAL_COLUMNS, map_finding, run_study
+
+    seed0 = 0 if args.seed is None else args.seed
+    rows = [{"seed": seed0, **{k: v for k, v in r.items() if k in TRIAL_COLUMNS}} for r in first.rows()]
+    trials = [(s, lambda s=s: _flown_frames(args, policies, edge_config, seed=s))
+              for s in range(seed0 + 1, seed0 + args.trials)]
+    rows += run_study(policies, trials, args.device, progress=lambda s: print(s, flush=True))
+    buf = io.StringIO()
+    writer = csv.DictWriter(buf, fieldnames=TRIAL_COLUMNS, extrasaction="ignore", lineterminator="\n")
+    writer.writeheader()
+    writer.writerows(rows)
+    out = Path(args.out)
+    write_text(out / "trials.csv", buf.getvalue())
+    base = policies[0].label
+    findings = [map_finding(rows, p.label, base, args.compare_map) for p in policies[1:]]
+    lines = [f"| model minus {base} | map | metric | mean model | mean {base} | difference [95 %], trials | decided |",
+             "|---|---|---|---:|---:|---|---|"]
+    for f in findings:
+        for c in f["comparisons"]:
+            lines.append(f"| {c['a']} | {c['map_kind']} | {c['metric']} | {c['mean_a']:.3f} | {c['mean_b']:.3f} | "
+                         f"{c['diff']:+.3f} [{c['low']:+.3f}, {c['high']:+.3f}], {c['trials']} | {c['side']} |")
+    lines += [f"\n{f['a']} vs {base}: **{f['verdict']}** ({f['why']})" for f in findings]
+    text = "\n".join(lines) + "\n"
+    write_text(out / "paired.md", text)
+    write_text(out / "paired.json", json.dumps({"trials": args.trials, "first_seed": seed0, "findings": findings},
+                                               indent=1) + "\n")
+    print(text)
+    print(f"wrote {out / 'trials.csv'}, {out / 'paired.md'}, {out / 'paired.json'}")

@@ -158,6 +158,24 @@ def scene_bootstrap_interval(scene: np.ndarray, diff: np.ndarray, confidence: fl
     return point, point
 
 
+def claim_side(low: float, high: float) -> str:
+    """Where the 95 % interval [low, high] of A - B puts a claim that A is higher: "for" (wholly above 0),
+    "against" (wholly below 0) or "undecided" (it holds 0)."""
+    if not (math.isfinite(low) and math.isfinite(high)):
+        return "undecided"
+    return "for" if low > 0 else "against" if high < 0 else "undecided"
+
+
+def claims_verdict(sides: Sequence[str]) -> tuple[str, str]:
+    """(verdict, why) of a finding made of claims decided by ``claim_side``: every claim for "reproduced", any
+    against "not", some for and none against "partly", none decided "cannot tell" (no claims: "n/a")."""
+    won, lost = sum(s == "for" for s in sides), sum(s == "against" for s in sides)
+    if not sides:
+        return "n/a", "no claims"
+    verdict = "not" if lost else ("reproduced" if won == len(sides) else "partly" if won else "cannot tell")
+    return verdict, f"{won} of {len(sides)} claims decided for, {lost} against"
+
+
 def mcnemar_exact(a_only: int, b_only: int) -> float:
     """McNemar's exact two-sided p-value: discordant pairs as a binomial with p = 1/2 (1.0 with none)."""
     n = a_only + b_only

@@ -25,7 +25,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass, field
 
 from vitfly.eval.findings import LEARNED, NOSTATE_SUFFIX, VIT_MODELS, label
-from vitfly.eval.paired import PairedDifference, paired_difference
+from vitfly.eval.paired import PairedDifference, claims_verdict, paired_difference
 from vitfly.eval.records import TrialRecord
 
 NOT_FLOWN = "the policies were not flown on shared scenes"
@@ -61,10 +61,8 @@ def _learned(records: Sequence[TrialRecord]) -> list[str]:
 
 def _decide(diffs: list[PairedDifference]) -> tuple[str, str]:
     """(verdict, why) of claims that each diff's ``a`` is the better, by the module's rule."""
-    won = sum(d.better == d.a for d in diffs)
-    lost = sum(d.better == d.b for d in diffs)
-    verdict = "not" if lost else ("reproduced" if won == len(diffs) else "partly" if won else "cannot tell")
-    return verdict, f"{won} of {len(diffs)} claims decided for, {lost} against"
+    return claims_verdict(["for" if d.better == d.a else "against" if d.better == d.b else "undecided"
+                           for d in diffs])
 
 
 def _rule(scope: str) -> str:

@@ -75,9 +75,10 @@ class TrialFrames:
 
 
 def _attach_edges(frames: TrialFrames, scene: Scene | None, camera: CameraConfig, edge_config: EdgeConfig,
-                  source: str) -> TrialFrames:
+                  source: str, compare: bool = True) -> TrialFrames:
     if scene is not None:
-        masks, mismatch = scene_edge_masks(scene, camera, frames.position, frames.quat, frames.depth, edge_config)
+        recorded = frames.depth if compare else None  # not compared: a sensor model made the frames on purpose
+        masks, mismatch = scene_edge_masks(scene, camera, frames.position, frames.quat, recorded, edge_config)
         if math.isnan(mismatch) or mismatch <= MAX_MISMATCH_SHARE:
             frames.edges, frames.edge_source = masks, "scene"
             frames.info["edge_rerender_mismatch_share"] = None if math.isnan(mismatch) else mismatch
@@ -101,7 +102,11 @@ def fly_trial(
     config: RolloutConfig | None = None,
     edge_config: EdgeConfig = DEFAULT_EDGES,
 ) -> TrialFrames:
-    """Fly ``scene`` at ``speed_mps`` with ``pilot`` through the normal rollout and keep every frame."""
+    """Fly ``scene`` at ``speed_mps`` with ``pilot`` through the normal rollout and keep every frame.
+
+    With a sensor model in ``config`` (``RolloutConfig.sensor``) the frames are what that sensor gave the
+    models, and the edges come from the scene's geometry at the logged poses, exact by construction (the
+    modelled frames differ from a clean re-render on purpose, so they are not compared)."""
     cfg = replace(config or RolloutConfig(), record_depth=True)
     result = run_episodes([scene], [float(speed_mps)], pilot, cfg)[0]
     log, s = result.log, result.summary
@@ -113,10 +118,11 @@ def fly_trial(
         position=log.position,
         command=log.command,
         title=f"{s.env}/{s.preset} seed {s.seed}, {s.desired_speed:g} m/s, flown by {pilot_name}: {s.end_reason}, "
-        f"{s.n_collisions} collision(s)",
-        info={"source": "simulation", "pilot": pilot_name, **s.to_dict()},
+        f"{s.n_collisions} collision(s)" + ("" if cfg.sensor is None else f", {cfg.sensor.model} depth"),
+        info={"source": "simulation", "pilot": pilot_name, **s.to_dict(),
+              "sensor": None if cfg.sensor is None else cfg.sensor.model},
     )
-    return _attach_edges(frames, scene, cfg.camera, edge_config, f"{s.env} seed {s.seed}")
+    return _attach_edges(frames, scene, cfg.camera, edge_config, f"{s.env} seed {s.seed}", cfg.sensor is None)
 
 
 def frames_from_arrays(
