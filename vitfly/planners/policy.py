@@ -31,7 +31,7 @@ from vitfly.sim.camera import CameraConfig
 from vitfly.sim.quadrotor import quat_wxyz_to_matrix
 
 # bump when a change to vitfly/planners alters what a planner flies: it is part of the policy fingerprint
-PLANNERS_CODE_VERSION = 1
+PLANNERS_CODE_VERSION = 2
 PLANNER_NAMES = ("fastplanner", "fastplanner_scaled", "convex", "convex_scaled")
 METHODS = ("fastplanner", "convex")
 DEFAULT_CONFIG = "planners"  # configs/planners.yaml
