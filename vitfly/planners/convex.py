@@ -11,7 +11,7 @@ command toward the point of that polytope that makes the most progress (``scipy.
 
 Escape rule (as the search's): a drone already inside the margin, or outside the course's box, would find no
 free seed and hold position there for ever; so a seed may not come closer to a mapped point, nor end further
-out of the box, than the drone already is.
+out of the box, than the drone already is, and inside the margin seeds all round (behind too) are tried.
 """
 
 from __future__ import annotations
@@ -23,6 +23,8 @@ from scipy.optimize import linprog
 
 from vitfly.planners.mapping import LocalMap
 from vitfly.planners.trajectory import Plan, limit_feasibility
+
+ESCAPE_YAW_DEG = tuple(float(a) for a in range(-180, 180, 20))  # seeds all round, for the escape rule
 
 
 @dataclass(frozen=True)
@@ -95,8 +97,11 @@ def convex_plan(local_map: LocalMap, position_m, velocity_mps, goal_direction, s
     # the escape rule: where the start already breaks a limit, the start is the limit (see the module doc)
     margin_m = min(s.margin_m, float(local_map.distance_m(p0, upper_bound_m=s.margin_m)))
     start_excess_m = _box_excess_m(p0, s)
+    directions = seed_directions(goal, s.seed_yaw_deg, s.seed_pitch_deg)
+    if margin_m < s.margin_m:  # inside the margin, the way out may lie behind: the whole circle after the fan
+        directions = np.concatenate([directions, seed_directions(goal, ESCAPE_YAW_DEG, s.seed_pitch_deg)])
     seed_end = None
-    for d in seed_directions(goal, s.seed_yaw_deg, s.seed_pitch_deg):
+    for d in directions:
         end = p0 + s.seed_length_m * d
         segment = p0 + along[1:] * (end - p0)
         if (local_map.distance_m(segment, upper_bound_m=s.margin_m).min() >= margin_m
@@ -122,10 +127,12 @@ def convex_plan(local_map: LocalMap, position_m, velocity_mps, goal_direction, s
     bounds = [(float(lo[i]), float(hi[i])) for i in range(3)] + [(0, None), (0, None)]
     result = linprog(objective, A_ub=np.vstack(rows), b_ub=np.concatenate(rhs), bounds=bounds, method="highs")
     target = result.x[:3] if result.status == 0 else seed_end  # LP trouble: the seed segment is free anyway
+    if np.linalg.norm(target - p0) < 0.05:
+        # the region's best point is where the drone is (inside the margin, the nearest face passes through it):
+        # fly the seed, which is free, and plan again from further out
+        target = seed_end
     offset = target - p0
     distance = float(np.linalg.norm(offset))
-    if distance < 1e-6:
-        return None
     speed = min(s.speed_mps, float(np.sqrt(2.0 * s.accel_max_mps2 * distance)))
     velocity = offset / distance * speed
     t = np.arange(0.0, s.plan_s + 1e-9, s.sample_dt_s)

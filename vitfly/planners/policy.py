@@ -150,6 +150,7 @@ class _EnvState:
     pending: Plan | None = None  # computed, usable from ``pending_ready_s``
     pending_ready_s: float = 0.0
     next_replan_s: float = 0.0
+    replan_ms: list[float] = field(default_factory=list)  # this env's replans, measured compute time (ms)
 
 
 def _promote_if_ready(env: _EnvState, now_s: float) -> None:
@@ -160,7 +161,8 @@ def _promote_if_ready(env: _EnvState, now_s: float) -> None:
 class ModularPolicy:
     """Perception -> map -> plan -> track for every active env (``vitfly.sim.rollout.Policy``).
 
-    ``replan_ms``: the measured compute time of every replan so far (ms), whatever ``fixed_latency_s``.
+    ``replan_ms``: the measured compute time of every replan so far (ms), whatever ``fixed_latency_s``;
+    ``trial_extra(i)``: env ``i``'s own since the last reset, for its trial record.
     """
 
     needs_depth = True
@@ -174,6 +176,12 @@ class ModularPolicy:
     def reset(self, num_envs: int) -> None:
         m = self.options.map
         self._envs = [_EnvState(LocalMap(m.voxel_m, m.memory_s, m.behind_m, m.max_points)) for _ in range(num_envs)]
+
+    def trial_extra(self, i: int) -> dict:
+        """What env ``i``'s trial record keeps of the planner: every replan's measured compute time (ms, 0.01 ms
+        steps) and the latency rule in force (``fixed_latency_s``, null: the measured times were charged)."""
+        return {"replan_ms": [round(ms, 2) for ms in self._envs[i].replan_ms],
+                "fixed_latency_s": self.options.fixed_latency_s}
 
     def plan(self, local_map: LocalMap, position_m, velocity_mps) -> Plan | None:
         """One replan from the given state on the given map (world frame); None when nothing safe was found."""
@@ -198,6 +206,7 @@ class ModularPolicy:
                 plan = self.plan(env.local_map, obs.position[i], velocity)
                 compute_s = time.perf_counter() - start
                 self.replan_ms.append(1e3 * compute_s)
+                env.replan_ms.append(1e3 * compute_s)
                 env.pending = plan if plan is not None else stop_plan(obs.position[i])
                 env.pending_ready_s = now + (compute_s if o.fixed_latency_s is None else o.fixed_latency_s)
                 env.next_replan_s = now + 1.0 / o.replan_hz
