@@ -179,9 +179,11 @@ class ModularPolicy:
 
     def trial_extra(self, i: int) -> dict:
         """What env ``i``'s trial record keeps of the planner: every replan's measured compute time (ms, 0.01 ms
-        steps) and the latency rule in force (``fixed_latency_s``, null: the measured times were charged)."""
-        return {"replan_ms": [round(ms, 2) for ms in self._envs[i].replan_ms],
-                "fixed_latency_s": self.options.fixed_latency_s}
+        steps), the latency rule in force (``fixed_latency_s``, null: the measured times were charged), the design
+        speed and whether the command is scaled to the desired speed."""
+        o = self.options
+        return {"replan_ms": [round(ms, 2) for ms in self._envs[i].replan_ms], "fixed_latency_s": o.fixed_latency_s,
+                "design_speed_mps": o.design_speed_mps, "scaled": o.scaled}
 
     def plan(self, local_map: LocalMap, position_m, velocity_mps) -> Plan | None:
         """One replan from the given state on the given map (world frame); None when nothing safe was found."""
