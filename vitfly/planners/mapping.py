@@ -6,7 +6,6 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial import cKDTree
 
-
 VOXEL_OFFSET = 1 << 20  # voxel indices within +-2^20 (+-157 km at 0.15 m) pack into 21 bits each
 
 
