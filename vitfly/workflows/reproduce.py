@@ -154,11 +154,11 @@ def stage_paths(cfg: ReproduceConfig, checkpoints: dict[str, Path]) -> None:
 
 
 def modular_plan(cfg: ReproduceConfig, checkpoints: dict[str, Path | str]) -> list[tuple[str, str, str | None]]:
-    """(policy, label, planners YAML) of the modular comparison: the planners, then the learned models and the
-    baselines, flown on the same scenes."""
+    """(policy, label, planners YAML) of the modular comparison, flown on the same scenes: the learned models and
+    the baselines first (cheap: an interrupted study has them to pair with), then the planners."""
     m = cfg.modular
-    return ([(f"modular:{p}", p, m.planner_config) for p in m.planners]
-            + [(str(checkpoints[model]), model, None) for model in m.models] + [(b, b, None) for b in m.baselines])
+    return ([(str(checkpoints[model]), model, None) for model in m.models] + [(b, b, None) for b in m.baselines]
+            + [(f"modular:{p}", p, m.planner_config) for p in m.planners])
 
 
 def stage_modular(cfg: ReproduceConfig, checkpoints: dict[str, Path | str], progress: bool = True) -> None:
