@@ -95,6 +95,7 @@ class ReproduceModular:
     trials: int = 30  # per speed and policy
     seed: int | None = None  # sweep seed of the scenes; None: evaluate.seed
     num_envs: int | None = None  # lockstep scenes per policy call; None: evaluate.num_envs
+    workers: int | None = None  # worker processes; None: evaluate.workers
 
     def speeds_of(self, planner: str) -> list[float]:
         return [float(v) for v in self.planner_speeds.get(planner, self.speeds)]
@@ -229,8 +230,8 @@ def check_modular(cfg: ReproduceConfig, source: str) -> None:
                               f"got {speeds!r}")
     if not m.speeds or any(v <= 0 for v in m.speeds):
         raise VitflyError(f"{source}: modular.speeds must be a list of speeds > 0 m/s, got {m.speeds!r}")
-    if m.trials < 1 or (m.num_envs is not None and m.num_envs < 1):
-        raise VitflyError(f"{source}: modular.trials and modular.num_envs must be >= 1")
+    if m.trials < 1 or any(v is not None and v < 1 for v in (m.num_envs, m.workers)):
+        raise VitflyError(f"{source}: modular.trials, modular.num_envs and modular.workers must be >= 1")
 
 
 def modular_stage(cfg: ReproduceConfig, speeds: list[float]) -> EvalStage:
@@ -238,7 +239,8 @@ def modular_stage(cfg: ReproduceConfig, speeds: list[float]) -> EvalStage:
     m = cfg.modular
     stage = eval_stage(cfg, ["spheres"], speeds, m.trials)
     return dataclasses.replace(stage, seed=cfg.evaluate.seed if m.seed is None else m.seed,
-                               num_envs=stage.num_envs if m.num_envs is None else m.num_envs)
+                               num_envs=stage.num_envs if m.num_envs is None else m.num_envs,
+                               workers=stage.workers if m.workers is None else m.workers)
 
 
 def _closed_loop_check(kwargs: dict, source: str):
