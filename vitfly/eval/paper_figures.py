@@ -116,10 +116,15 @@ REPLAN_PERIOD_MS = 100.0  # the planners' 10 Hz replan period (configs/planners.
 
 def modular_baselines_figure(rows: Sequence[dict], recs: Sequence[TrialRecord], path: str | Path,
                              title: str = "") -> Path:
-    """The paper's comparison with modular baselines, three panels: collision rate (trials with a collision) vs
-    desired speed; mean actual forward speed vs desired speed, with the y = x line a policy that flies the speed
-    asked of it follows; each planner's replan compute time (mean and 95th percentile, ms) against the control
-    tick and the replan period. ``rows``: summary rows of one env; ``recs``: its trial records."""
+    """``draw_modular_baselines`` saved to ``path``."""
+    return _save(draw_modular_baselines(rows, recs, title), Path(path))
+
+
+def draw_modular_baselines(rows: Sequence[dict], recs: Sequence[TrialRecord], title: str = "") -> Figure:
+    """The paper's comparison with modular baselines, three panels: collision rate (trials with a collision, %) vs
+    desired speed; mean actual forward speed vs desired speed (m/s), with the y = x line a policy that flies the
+    speed asked of it follows; each planner's replan compute time (mean and 95th percentile, ms) against the
+    control tick and the replan period. ``rows``: summary rows of one env; ``recs``: its trial records."""
     from vitfly.eval.modular_baselines import replan_latency
 
     policies = sorted({r["policy"] for r in rows})
@@ -159,4 +164,4 @@ def modular_baselines_figure(rows: Sequence[dict], recs: Sequence[TrialRecord], 
     if handles:
         fig.legend(handles, labels, loc="outside lower center", ncols=min(len(labels), 6))
     fig.suptitle(title or "modular baselines vs end-to-end: spheres, the same scenes for every policy")
-    return _save(fig, Path(path))
+    return fig

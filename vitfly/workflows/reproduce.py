@@ -157,8 +157,8 @@ def modular_plan(cfg: ReproduceConfig, checkpoints: dict[str, Path | str]) -> li
     """(policy, label, planners YAML) of the modular comparison, flown on the same scenes: the learned models and
     the baselines first (cheap: an interrupted study has them to pair with), then the planners."""
     m = cfg.modular
-    return ([(str(checkpoints[model]), model, None) for model in m.models] + [(b, b, None) for b in m.baselines]
-            + [(f"modular:{p}", p, m.planner_config) for p in m.planners])
+    return ([(str(checkpoints[model]), model, None) for model in m.models if model in checkpoints]
+            + [(b, b, None) for b in m.baselines] + [(f"modular:{p}", p, m.planner_config) for p in m.planners])
 
 
 def stage_modular(cfg: ReproduceConfig, checkpoints: dict[str, Path | str], progress: bool = True) -> None:
@@ -171,6 +171,9 @@ def stage_modular(cfg: ReproduceConfig, checkpoints: dict[str, Path | str], prog
     if not m.planners:
         print("[modular] no planners configured (modular.planners): nothing to fly")
         return
+    missing = [model for model in m.models if model not in checkpoints]
+    if missing:
+        print(f"[modular] {', '.join(missing)}: not in train.models, left out of the modular comparison")
     for policy, name, planner_config in modular_plan(cfg, checkpoints):
         speeds = m.speeds_of(name) if policy.startswith("modular:") else [float(v) for v in m.speeds]
         sweep = dataclasses.replace(sweep_config(modular_stage(cfg, speeds), out, policy, name),
