@@ -154,7 +154,10 @@ def test_measured_latency_delays_the_plan():
     policy = ModularPolicy(PlannerOptions(replan_hz=10.0, position_gain_per_s=0.0))
 
     def slow_plan(local_map, position, velocity):
-        time.sleep(0.05)  # longer than one 30 Hz tick
+        # 50 ms of the planning thread's CPU time (what the rule measures; a sleep costs none): over one 30 Hz tick
+        end = time.thread_time() + 0.05
+        while time.thread_time() < end:
+            pass
         return Plan(np.array([0.0, 1.0]), np.stack([position, position + [1, 0, 0]]), np.tile([1.0, 0, 0], (2, 1)))
 
     policy.plan = slow_plan
