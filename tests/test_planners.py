@@ -154,7 +154,10 @@ def test_measured_latency_delays_the_plan():
     policy = ModularPolicy(PlannerOptions(replan_hz=10.0, position_gain_per_s=0.0))
 
     def slow_plan(local_map, position, velocity):
-        time.sleep(0.05)  # longer than one 30 Hz tick
+        # 50 ms of the planning thread's CPU time (what the rule measures; a sleep costs none): over one 30 Hz tick
+        end = time.thread_time() + 0.05
+        while time.thread_time() < end:
+            pass
         return Plan(np.array([0.0, 1.0]), np.stack([position, position + [1, 0, 0]]), np.tile([1.0, 0, 0], (2, 1)))
 
     policy.plan = slow_plan
@@ -208,3 +211,44 @@ def test_vitfly_evaluate_flies_a_modular_planner(tmp_path, capsys):
     assert x[-1] > 2.5, "it flew forward"
     assert main([*args[:2], "modular:nope", *args[3:]]) == 2
     assert "no planner 'nope'" in capsys.readouterr().err
+
+
+def ball_ahead(centre_x_m=0.95, radius_m=0.5):
+    """Points on a sphere of radius 0.5 m centred 0.95 m ahead of START (a Fibonacci lattice of 400, and its
+    pole toward the drone, (0.45, 0, 3.5)): the nearest point is 0.45 m away."""
+    k = np.arange(400) + 0.5
+    polar, azimuth = np.arccos(1 - 2 * k / 400), np.pi * (1 + 5**0.5) * k
+    unit = np.stack([np.cos(polar), np.sin(polar) * np.cos(azimuth), np.sin(polar) * np.sin(azimuth)], axis=1)
+    return START + [centre_x_m, 0, 0] + radius_m * np.vstack([unit, [[-1.0, 0.0, 0.0]]])
+
+
+def test_a_drone_that_braked_inside_the_margin_plans_its_way_out():
+    # the stall of issue 24: braking for an obstacle seen late left the drone 0.45 m from it, inside the
+    # 0.6 m margin; every primitive (every seed) then "collided" and the drone held position there until
+    # the timeout
+    local_map = LocalMap(voxel_m=0.01)  # fine voxels: every point of the ball kept
+    local_map.insert(ball_ahead(), 0.0, START)
+    start_clearance = float(local_map.distance_m(START))
+    assert start_clearance == pytest.approx(0.45)
+    settings = SearchSettings()
+    plan = kinodynamic_search(local_map, START, [0.0, 0.0, 0.0], (1.0, 0.0, 0.0), settings)
+    assert plan is not None and not plan.stop
+    clearance = local_map.distance_m(plan.position_m)
+    assert clearance.min() >= start_clearance - 1e-9  # never closer than it started
+    assert clearance[-1] > settings.margin_m and plan.position_m[-1, 0] > 1.45  # out of the margin, past the ball
+    convex = convex_plan(local_map, START, [0.0, 0.0, 0.0], (1.0, 0.0, 0.0), ConvexSettings())
+    assert convex is not None and not convex.stop
+    assert local_map.distance_m(convex.position_m[:5]).min() >= start_clearance - 1e-9  # its first 0.2 s
+
+
+def test_a_drone_outside_the_box_flies_on():
+    # y = 9.6 m is 0.6 m past the planners' |y| <= 9 m box (a drift while avoiding): an empty map, no reason
+    # to stop; before the escape rule every primitive and every seed "left the box"
+    local_map = LocalMap()
+    start = np.array([20.0, 9.6, 3.5])
+    plan = kinodynamic_search(local_map, start, [0.0, 0.0, 0.0], (1.0, 0.0, 0.0), SearchSettings())
+    assert plan is not None and not plan.stop
+    assert np.abs(plan.position_m[:, 1]).max() <= 9.6 + 1e-9  # never further out than it started
+    assert plan.position_m[-1, 0] > start[0] + 1.0  # on along the course
+    convex = convex_plan(local_map, start, [0.0, 0.0, 0.0], (1.0, 0.0, 0.0), ConvexSettings())
+    assert convex is not None and convex.velocity_mps[0, 0] > 0 and convex.velocity_mps[0, 1] <= 0

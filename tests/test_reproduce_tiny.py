@@ -85,8 +85,9 @@ def test_tiny_study_resumes_after_a_kill_in_every_stage(tmp_path):
     # nothing finished before was done again
     assert "[collect] " in text and "complete, 6 trajectories (0 new)" in text
     assert text.count("[train] done before") == 3
-    # every trial once, and all of them: spheres/trees 4 policies x 2 speeds, window 4 x 1, ablation 2 x 2 envs
-    expected = {"spheres": 8, "trees": 8, "window": 4, "ablation": 4, "paths": 6}
+    # every trial once, and all of them: spheres/trees 4 policies x 2 speeds, window 4 x 1, ablation 2 x 2 envs,
+    # the modular comparison fastplanner, ViT+LSTM and the expert at 3 m/s
+    expected = {"spheres": 8, "trees": 8, "window": 4, "ablation": 4, "paths": 6, "modular": 3}
     for sweep, n in expected.items():
         recs = records.read_sweep(out / "eval" / sweep)
         keys = Counter(r.key for r in recs)
@@ -98,10 +99,15 @@ def test_tiny_study_resumes_after_a_kill_in_every_stage(tmp_path):
     md = (out / "results.md").read_text()
     assert "## Findings" in md and "## Ablation: state input" in md and "| ConvNet | 235,269 | 235,269 |" in md
     # the paired section: every paired finding, and ViT+LSTM against ConvNet on the same spheres scenes
-    assert "## Paired comparisons" in md and len(results["paired_findings"]) == 9
+    assert "## Paired comparisons" in md and len(results["paired_findings"]) == 10
+    modular = records.read_sweep(out / "eval" / "modular")
+    assert {r.scene_seed for r in modular} == {modular[0].scene_seed}  # one scene (seed 7070, trial 0) for all three
+    assert len(next(r for r in modular if r.policy == "fastplanner").extra["replan_ms"]) > 0
+    assert results["paired_findings"][-1]["key"] == "modular_baselines" and "## Modular baselines" in md
+    assert results["modular"]["replan_latency"]["fastplanner"]["trials"] == 1
     assert "| ConvNet | " in md.split("ViT+LSTM's success minus each policy's in spheres")[1]
     for name in ("spheres_collision_metrics", "trees_collision_metrics", "command_characteristics",
-                 "paths_fixed_scene", "paths_fixed_scene_3d", "window_paths"):
+                 "paths_fixed_scene", "paths_fixed_scene_3d", "window_paths", "modular_baselines"):
         assert (out / "figures" / f"{name}.png").stat().st_size > 10_000, name
     # the state models were published (fp16 safetensors) with their closed-loop numbers
     manifest = read_manifest(tmp_path / "weights")["models"]
@@ -117,7 +123,7 @@ def test_tiny_study_resumes_after_a_kill_in_every_stage(tmp_path):
             assert torch.equal(published.state_dict()[k], expected), (name, k)
     # a rerun of the finished study does nothing new
     log = tmp_path / "again.log"
-    proc = start(out, data, log, "--stages", "train", "evaluate", "paths")
+    proc = start(out, data, log, "--stages", "train", "evaluate", "paths", "modular")
     assert proc.wait(timeout=600) == 0
     again = log.read_text()
     assert " 0 trials flown" in again and " 1 trials flown" not in again and " 2 trials flown" not in again

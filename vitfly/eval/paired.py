@@ -38,7 +38,8 @@ from vitfly.eval.records import TrialRecord
 
 # metric name -> (how to read it from a record, True when a higher value is better)
 OUTCOMES = {"success": ("success_paper", True), "success_strict": ("success_strict", True)}
-LOWER_IS_BETTER = ("collisions", "time_in_collision", "energy_cost", "cmd_acc", "lateral_dev_max")
+# speed_error: |actual forward speed / desired - 1|, how far a policy misses the speed asked of it
+LOWER_IS_BETTER = ("collisions", "time_in_collision", "energy_cost", "cmd_acc", "lateral_dev_max", "speed_error")
 METRICS = (*OUTCOMES, *LOWER_IS_BETTER, "speed_ratio")
 HIGHER_IS_BETTER = {**{m: OUTCOMES[m][1] for m in OUTCOMES}, **{m: False for m in LOWER_IS_BETTER},
                     "speed_ratio": True}
@@ -103,6 +104,8 @@ def metric_value(rec: TrialRecord, metric: str) -> float:
     """One trial's value of ``metric`` (success as 0/1; nan when the trial leaves it undefined)."""
     if metric in OUTCOMES:
         return float(getattr(rec, OUTCOMES[metric][0]))
+    if metric == "speed_error":
+        return abs(metric_value(rec, "speed_ratio") - 1.0)
     if metric not in AGGREGATED_METRICS:
         raise VitflyError(f"paired metric {metric!r}: expected one of {', '.join(METRICS)}")
     value = rec.metrics.get(AGGREGATED_METRICS[metric][0])

@@ -15,7 +15,10 @@ Two findings are claims of absence or of one special contrast and say their own 
 and ``resnet_vs_convnet``). The two findings that compare against the paper's own numbers or a repeated single
 scene (trees success at 7 m/s, the most direct path) are not pairs of policies and stay in the unpaired table.
 
-Inputs: trial records of each sweep (``spheres``, ``trees``, ``window``, ``ablation``) with the labels of
+The last finding is the paper's comparison with modular baselines (``modular_baselines``): ViT+LSTM against
+each modular planner flown on the same spheres scenes at 1-7 m/s, on success and on the speed error.
+
+Inputs: trial records of each sweep (``spheres``, ``trees``, ``window``, ``ablation``, ``modular``) with the labels of
 ``vitfly.eval.findings``.
 """
 
@@ -32,7 +35,8 @@ NOT_FLOWN = "the policies were not flown on shared scenes"
 PAIRED_VERDICTS = ("reproduced", "partly", "not", "cannot tell", "n/a")
 METRIC_WORDS = {"success": "success", "success_strict": "strict success", "collisions": "collisions per trial",
                 "time_in_collision": "time in collision (s)", "energy_cost": "energy cost (1/s²)",
-                "cmd_acc": "commanded acceleration (1/s²)"}
+                "cmd_acc": "commanded acceleration (1/s²)",
+                "speed_error": "speed error abs(actual / desired - 1)"}
 
 
 @dataclass
@@ -164,6 +168,21 @@ def resnet_no_better(spheres: Sequence[TrialRecord]) -> PairedFinding:
     return PairedFinding(key, claim, "success", rule, verdict, [d], why)
 
 
+def modular_baselines(modular: Sequence[TrialRecord]) -> PairedFinding:
+    """ViT+LSTM against every modular planner (``modular:NAME`` in the records' policy source) flown on the same
+    spheres scenes, all speeds pooled: two claims per planner, ViT+LSTM the better on the paper's success (no
+    collision) and on the speed error |actual forward speed / desired - 1|."""
+    key = "modular_baselines"
+    claim = ("The end-to-end ViT+LSTM keeps its collision rate and matches the desired speed across 1-7 m/s; "
+             "the modular methods do not")
+    planners = sorted({r.policy for r in modular if str(r.extra.get("policy_source", "")).startswith("modular:")})
+    pairs = [("vit_lstm", p) for p in planners]
+    parts = [_claims(key, claim, metric, modular, pairs, "spheres", None, "all speeds pooled")
+             for metric in ("success", "speed_error")]
+    return _merge(key, claim, "success", parts, "success and speed error in spheres against each modular planner "
+                  "(all speeds pooled)")
+
+
 def _merge(key: str, claim: str, metric: str, parts: list[PairedFinding], scope: str) -> PairedFinding:
     """One finding from the claims of several environments, decided by the same rule over all of them."""
     diffs = [d for p in parts for d in p.comparisons]
@@ -175,12 +194,14 @@ def _merge(key: str, claim: str, metric: str, parts: list[PairedFinding], scope:
 
 def paired_findings(spheres: Sequence[TrialRecord] | None, trees: Sequence[TrialRecord] | None,
                     window: Sequence[TrialRecord] | None,
-                    ablation: Sequence[TrialRecord] | None) -> list[PairedFinding]:
-    """Every paired finding, in the order of the unpaired table (``vitfly.eval.findings.paper_findings``)."""
+                    ablation: Sequence[TrialRecord] | None,
+                    modular: Sequence[TrialRecord] | None = None) -> list[PairedFinding]:
+    """Every paired finding, in the order of the unpaired table (``vitfly.eval.findings.paper_findings``), then the
+    comparison with the modular baselines (``modular``: the records of that sweep)."""
     s, t, w, a = spheres or [], trees or [], window or [], ablation or []
     return [lowest_collisions_fast(s), beats_expert_fast(s), less_time_in_collision_than_expert(s),
             vit_best_in_trees(t), only_vit_through_window(w), lowest_energy(s), recurrence_lowers_acceleration(s, t),
-            state_helps_vit_lstm(a), resnet_no_better(s)]
+            state_helps_vit_lstm(a), resnet_no_better(s), modular_baselines(modular or [])]
 
 
 def _policy(name: str) -> str:
@@ -207,8 +228,11 @@ def paired_findings_markdown(findings: Sequence[PairedFinding]) -> str:
 
 def lead_table(records: Sequence[TrialRecord], env: str, leader: str = "vit_lstm",
                metric: str = "success") -> str:
-    """``leader`` minus every other policy of ``env`` on ``metric``, per speed and pooled, with paired intervals."""
-    policies = [p for p in (*LEARNED, "expert", "straight") if p != leader and any(r.policy == p for r in records)]
+    """``leader`` minus every other policy of ``env`` on ``metric``, per speed and pooled, with paired intervals
+    (the learned models, the expert and straight flight, then any other policy, e.g. the modular planners)."""
+    present = sorted({r.policy for r in records})
+    known = (*LEARNED, "expert", "straight")
+    policies = [p for p in (*known, *(q for q in present if q not in known)) if p != leader and p in present]
     speeds = _speeds_of(records, leader)
     if not policies or not speeds:
         return "(not flown)\n"

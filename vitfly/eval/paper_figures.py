@@ -6,7 +6,9 @@
   (the paper's acceleration/energy figure);
 - ``mean_paths_figure``: top-down and side views of each policy's mean path over repeated trials of one
   scene with a band of +-0.1 standard deviations (the paper's path-distribution figure);
-- ``mean_paths_3d_figure``: the same mean paths in 3D.
+- ``mean_paths_3d_figure``: the same mean paths in 3D;
+- ``modular_baselines_figure``: collision rate and actual vs desired forward speed of the modular planners beside
+  the networks, and the planners' replan compute time (the paper's modular-baselines figure).
 
 Figures are ``matplotlib.figure.Figure`` objects saved atomically (no pyplot state).
 """
@@ -106,3 +108,60 @@ def mean_paths_3d_figure(recs: Sequence[TrialRecord], path: str | Path, scene=No
     ax.set_title(title or "mean paths (3D)")
     ax.legend(loc="upper left", fontsize=8)
     return _save(fig, Path(path))
+
+
+CONTROL_PERIOD_MS = 1000.0 / 30.0  # one control tick at the paper's 30 Hz
+REPLAN_PERIOD_MS = 100.0  # the planners' 10 Hz replan period (configs/planners.yaml)
+
+
+def modular_baselines_figure(rows: Sequence[dict], recs: Sequence[TrialRecord], path: str | Path,
+                             title: str = "") -> Path:
+    """``draw_modular_baselines`` saved to ``path``."""
+    return _save(draw_modular_baselines(rows, recs, title), Path(path))
+
+
+def draw_modular_baselines(rows: Sequence[dict], recs: Sequence[TrialRecord], title: str = "") -> Figure:
+    """The paper's comparison with modular baselines, three panels: collision rate (trials with a collision, %) vs
+    desired speed; mean actual forward speed vs desired speed (m/s), with the y = x line a policy that flies the
+    speed asked of it follows; each planner's replan compute time (mean and 95th percentile, ms) against the
+    control tick and the replan period. ``rows``: summary rows of one env; ``recs``: its trial records."""
+    from vitfly.eval.modular_baselines import replan_latency
+
+    policies = sorted({r["policy"] for r in rows})
+    colours = policy_colours(policies)
+    fig = Figure(figsize=(13.5, 4.2), layout="constrained")
+    ax_col, ax_speed, ax_lat = fig.subplots(1, 3, width_ratios=(1, 1, 0.8))
+    top = 0.0
+    for p in policies:
+        sel = sorted((r for r in rows if r["policy"] == p), key=lambda r: r["speed"])
+        x = np.array([r["speed"] for r in sel], float)
+        ax_col.plot(x, [100.0 * (1.0 - r["success_paper_rate"]) for r in sel], marker="o", color=colours[p],
+                    label=p, lw=1.5, ms=4)
+        fwd = np.array([r["forward_speed_mean"] for r in sel], float)
+        ax_speed.plot(x, fwd, marker="o", color=colours[p], lw=1.5, ms=4)
+        top = max(top, float(np.nanmax(x)) if len(x) else 0.0, float(np.nanmax(fwd)) if np.isfinite(fwd).any() else 0)
+    ax_speed.plot([0, top + 0.5], [0, top + 0.5], ls="--", color="0.5", lw=1, label="y = x (desired speed)")
+    ax_col.set(xlabel="desired speed (m/s)", ylabel="collision rate (%)\n(trials with a collision)", ylim=(-5, 105),
+               title="collisions")
+    ax_speed.set(xlabel="desired speed (m/s)", ylabel="actual forward speed (m/s)", xlim=(0, top + 0.5),
+                 ylim=(0, top + 0.5), title="actual vs desired forward speed")
+    ax_speed.legend(loc="upper left", fontsize=8)
+    latency = replan_latency(recs)
+    names = list(latency)
+    k = np.arange(len(names))
+    ax_lat.bar(k - 0.2, [latency[n]["mean_ms"] for n in names], 0.4, color=[colours.get(n, "0.5") for n in names],
+               label="mean")
+    ax_lat.bar(k + 0.2, [latency[n]["p95_ms"] for n in names], 0.4, color=[colours.get(n, "0.5") for n in names],
+               alpha=0.45, hatch="//", label="95th percentile")
+    ax_lat.axhline(CONTROL_PERIOD_MS, ls=":", color="0.3", lw=1, label=f"control tick ({CONTROL_PERIOD_MS:.0f} ms)")
+    ax_lat.axhline(REPLAN_PERIOD_MS, ls="--", color="0.3", lw=1, label=f"replan period ({REPLAN_PERIOD_MS:.0f} ms)")
+    ax_lat.set_xticks(k, names, rotation=25, ha="right", fontsize=8)
+    ax_lat.set(ylabel="replan compute time (ms)", title="planning latency")
+    ax_lat.legend(fontsize=7, loc="upper left")
+    for ax in (ax_col, ax_speed, ax_lat):
+        ax.grid(alpha=0.3)
+    handles, labels = ax_col.get_legend_handles_labels()
+    if handles:
+        fig.legend(handles, labels, loc="outside lower center", ncols=min(len(labels), 6))
+    fig.suptitle(title or "modular baselines vs end-to-end: spheres, the same scenes for every policy")
+    return fig

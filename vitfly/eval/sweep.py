@@ -187,6 +187,7 @@ def fly_batch(batch: Sequence[TrialSpec], policy, cfg: SweepConfig, out_file: Pa
     setups = {env: identity.setup(env) for env in {s.env for s in batch}}
     scenes = [make_scene(s.env, s.preset, s.scene_seed) for s in batch]
     engine = cfg.engine
+    trial_extra = getattr(policy, "trial_extra", None)  # e.g. a modular planner's replan times
     if engine.batched:  # the batched twin of the expert and straight flight, a learned policy's torch path
         from vitfly.sim.batched.policies import as_batched_policy
 
@@ -197,6 +198,8 @@ def fly_batch(batch: Sequence[TrialSpec], policy, cfg: SweepConfig, out_file: Pa
         calls = max(int(timed.calls[i]), 1)
         rec = record_from_result(batch[i], cfg.label, result, cfg, float(timed.env_ms[i] / calls),
                                  float(timed.call_ms[i] / calls), len(batch), setups[batch[i].env])
+        if trial_extra is not None:
+            rec.extra.update(trial_extra(i))
         records.append_record(out_file, rec)
         if on_trial is not None:
             on_trial(rec)

@@ -8,6 +8,10 @@ command toward the point of that polytope that makes the most progress (``scipy.
    ``margin_m``; drop the points that plane already excludes; repeat. The region contains the segment.
 3. Target: the LP maximises progress along the goal direction minus a small L1 pull toward the home line,
    inside the region and a box of half-size ``region_radius_m`` around the drone.
+
+Escape rule (as the search's): a drone already inside the margin, or outside the course's box, would find no
+free seed and hold position there for ever; so a seed may not come closer to a mapped point, nor end further
+out of the box, than the drone already is, and inside the margin seeds all round (behind too) are tried.
 """
 
 from __future__ import annotations
@@ -19,6 +23,8 @@ from scipy.optimize import linprog
 
 from vitfly.planners.mapping import LocalMap
 from vitfly.planners.trajectory import Plan, limit_feasibility
+
+ESCAPE_YAW_DEG = tuple(float(a) for a in range(-180, 180, 20))  # seeds all round, for the escape rule
 
 
 @dataclass(frozen=True)
@@ -76,26 +82,37 @@ def carve_free_polytope(obstacles_m: np.ndarray, a: np.ndarray, b: np.ndarray, m
     return np.array(normals).reshape(-1, 3), np.array(offsets)
 
 
+def _box_excess_m(point_m: np.ndarray, s: ConvexSettings) -> float:
+    """How far (m) a point lies outside the course's box (0 inside): the largest of its overshoots."""
+    y, z = float(point_m[1]), float(point_m[2])
+    return max(0.0, s.z_min_m - z, z - s.z_max_m, abs(y) - s.y_abs_max_m)
+
+
 def convex_plan(local_map: LocalMap, position_m, velocity_mps, goal_direction, s: ConvexSettings) -> Plan | None:
     """A straight plan toward the LP's target inside the carved region; None when no seed direction is free."""
     p0 = np.asarray(position_m, dtype=np.float64)
     goal = np.asarray(goal_direction, dtype=np.float64)
     goal = goal / np.linalg.norm(goal)
     along = np.linspace(0.0, 1.0, 17)[:, None]
+    # the escape rule: where the start already breaks a limit, the start is the limit (see the module doc)
+    margin_m = min(s.margin_m, float(local_map.distance_m(p0, upper_bound_m=s.margin_m)))
+    start_excess_m = _box_excess_m(p0, s)
+    directions = seed_directions(goal, s.seed_yaw_deg, s.seed_pitch_deg)
+    if margin_m < s.margin_m:  # inside the margin, the way out may lie behind: the whole circle after the fan
+        directions = np.concatenate([directions, seed_directions(goal, ESCAPE_YAW_DEG, s.seed_pitch_deg)])
     seed_end = None
-    for d in seed_directions(goal, s.seed_yaw_deg, s.seed_pitch_deg):
+    for d in directions:
         end = p0 + s.seed_length_m * d
-        segment = p0 + along * (end - p0)
-        if local_map.distance_m(segment, upper_bound_m=s.margin_m).min() >= s.margin_m and (
-            s.z_min_m <= end[2] <= s.z_max_m and abs(end[1]) <= s.y_abs_max_m
-        ):
+        segment = p0 + along[1:] * (end - p0)
+        if (local_map.distance_m(segment, upper_bound_m=s.margin_m).min() >= margin_m
+                and _box_excess_m(end, s) <= start_excess_m + 1e-9):
             seed_end = end
             break
     if seed_end is None:
         return None
     reach = s.region_radius_m
     nearby = local_map.points_within(p0, reach * np.sqrt(3.0))
-    a_obs, c_obs = carve_free_polytope(nearby, p0, seed_end, s.margin_m, s.max_planes)
+    a_obs, c_obs = carve_free_polytope(nearby, p0, seed_end, margin_m, s.max_planes)
     # variables (qx, qy, qz, ty, tz): ty >= |qy - y_home|, tz >= |qz - z_home| (the L1 pull, linear)
     y_home, z_home = s.home_yz_m
     objective = np.concatenate([-goal, [s.weight_home, s.weight_home]])
@@ -103,15 +120,19 @@ def convex_plan(local_map: LocalMap, position_m, velocity_mps, goal_direction, s
     rhs = [c_obs]
     rows.append(np.array([[0, 1, 0, -1, 0], [0, -1, 0, -1, 0], [0, 0, 1, 0, -1], [0, 0, -1, 0, -1]], float))
     rhs.append(np.array([y_home, -y_home, z_home, -z_home]))
-    lo = np.maximum(p0 - reach, [-np.inf, -s.y_abs_max_m, s.z_min_m])
-    hi = np.minimum(p0 + reach, [np.inf, s.y_abs_max_m, s.z_max_m])
+    # the course's box, widened to hold the drone where it is already outside (the escape rule)
+    y_max = max(s.y_abs_max_m, abs(float(p0[1])))
+    lo = np.maximum(p0 - reach, [-np.inf, -y_max, min(s.z_min_m, float(p0[2]))])
+    hi = np.minimum(p0 + reach, [np.inf, y_max, max(s.z_max_m, float(p0[2]))])
     bounds = [(float(lo[i]), float(hi[i])) for i in range(3)] + [(0, None), (0, None)]
     result = linprog(objective, A_ub=np.vstack(rows), b_ub=np.concatenate(rhs), bounds=bounds, method="highs")
     target = result.x[:3] if result.status == 0 else seed_end  # LP trouble: the seed segment is free anyway
+    if np.linalg.norm(target - p0) < 0.05:
+        # the region's best point is where the drone is (inside the margin, the nearest face passes through it):
+        # fly the seed, which is free, and plan again from further out
+        target = seed_end
     offset = target - p0
     distance = float(np.linalg.norm(offset))
-    if distance < 1e-6:
-        return None
     speed = min(s.speed_mps, float(np.sqrt(2.0 * s.accel_max_mps2 * distance)))
     velocity = offset / distance * speed
     t = np.arange(0.0, s.plan_s + 1e-9, s.sample_dt_s)

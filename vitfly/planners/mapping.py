@@ -6,6 +6,8 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial import cKDTree
 
+VOXEL_OFFSET = 1 << 20  # voxel indices within +-2^20 (+-157 km at 0.15 m) pack into 21 bits each
+
 
 class LocalMap:
     """World-frame obstacle points (m) seen in the last ``memory_s`` seconds, one per ``voxel_m`` cube.
@@ -27,10 +29,12 @@ class LocalMap:
         seen = np.concatenate([self.seen_s, np.full(len(points_m), float(time_s))])
         keep = (seen >= time_s - self.memory_s) & (pts[:, 0] >= float(drone_position_m[0]) - self.behind_m)
         pts, seen = pts[keep], seen[keep]
-        # one point per voxel, the latest seen (np.unique keeps the first index: newest first)
-        keys = np.floor(pts / self.voxel_m).astype(np.int64)
+        # one point per voxel, the latest seen (np.unique keeps the first index: newest first); the voxel's three
+        # indices packed in one int64 (21 bits each, lexicographic order kept): a 1-D unique, ~10x faster than rows
+        cell = np.floor(pts / self.voxel_m).astype(np.int64) + VOXEL_OFFSET
+        keys = (cell[:, 0] << 42) | (cell[:, 1] << 21) | cell[:, 2]
         order = np.argsort(-seen, kind="stable")
-        _, first = np.unique(keys[order], axis=0, return_index=True)
+        _, first = np.unique(keys[order], return_index=True)
         chosen = order[first]
         chosen = chosen[np.argsort(-seen[chosen], kind="stable")][: self.max_points]
         self.points_m, self.seen_s = pts[chosen], seen[chosen]

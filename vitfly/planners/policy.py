@@ -2,10 +2,11 @@
 compute time is charged in simulated time, the current plan tracked at the control rate.
 
 The latency rule: a replan started at tick time t with the state and map of that tick takes c seconds
-(``time.perf_counter`` around it, or ``fixed_latency_s`` for deterministic runs); its plan is used from
-the first tick at or after t + c, and until then the previous plan is tracked. No replan starts while one
-is pending, so a planner slower than its period replans less often and falls behind its observations.
-A failed replan (nothing safe found) yields a plan that holds position.
+(``time.thread_time`` around it: the planning thread's CPU time, which other processes sharing the machine do
+not inflate, and which equals the wall time on a dedicated core; or ``fixed_latency_s`` for deterministic
+runs); its plan is used from the first tick at or after t + c, and until then the previous plan is tracked.
+No replan starts while one is pending, so a planner slower than its period replans less often and falls
+behind its observations. A failed replan (nothing safe found) yields a plan that holds position.
 
 Scaled variants (the paper's FastPlanner-scaled): the planner works at its design speed and the command
 is multiplied by desired speed / design speed.
@@ -31,7 +32,7 @@ from vitfly.sim.camera import CameraConfig
 from vitfly.sim.quadrotor import quat_wxyz_to_matrix
 
 # bump when a change to vitfly/planners alters what a planner flies: it is part of the policy fingerprint
-PLANNERS_CODE_VERSION = 1
+PLANNERS_CODE_VERSION = 2
 PLANNER_NAMES = ("fastplanner", "fastplanner_scaled", "convex", "convex_scaled")
 METHODS = ("fastplanner", "convex")
 DEFAULT_CONFIG = "planners"  # configs/planners.yaml
@@ -150,6 +151,7 @@ class _EnvState:
     pending: Plan | None = None  # computed, usable from ``pending_ready_s``
     pending_ready_s: float = 0.0
     next_replan_s: float = 0.0
+    replan_ms: list[float] = field(default_factory=list)  # this env's replans, measured compute time (ms)
 
 
 def _promote_if_ready(env: _EnvState, now_s: float) -> None:
@@ -160,7 +162,8 @@ def _promote_if_ready(env: _EnvState, now_s: float) -> None:
 class ModularPolicy:
     """Perception -> map -> plan -> track for every active env (``vitfly.sim.rollout.Policy``).
 
-    ``replan_ms``: the measured compute time of every replan so far (ms), whatever ``fixed_latency_s``.
+    ``replan_ms``: the measured compute time of every replan so far (ms), whatever ``fixed_latency_s``;
+    ``trial_extra(i)``: env ``i``'s own since the last reset, for its trial record.
     """
 
     needs_depth = True
@@ -174,6 +177,14 @@ class ModularPolicy:
     def reset(self, num_envs: int) -> None:
         m = self.options.map
         self._envs = [_EnvState(LocalMap(m.voxel_m, m.memory_s, m.behind_m, m.max_points)) for _ in range(num_envs)]
+
+    def trial_extra(self, i: int) -> dict:
+        """What env ``i``'s trial record keeps of the planner: every replan's measured compute time (ms, 0.01 ms
+        steps), the latency rule in force (``fixed_latency_s``, null: the measured times were charged), the design
+        speed and whether the command is scaled to the desired speed."""
+        o = self.options
+        return {"replan_ms": [round(ms, 2) for ms in self._envs[i].replan_ms], "fixed_latency_s": o.fixed_latency_s,
+                "design_speed_mps": o.design_speed_mps, "scaled": o.scaled}
 
     def plan(self, local_map: LocalMap, position_m, velocity_mps) -> Plan | None:
         """One replan from the given state on the given map (world frame); None when nothing safe was found."""
@@ -191,13 +202,14 @@ class ModularPolicy:
             env.local_map.insert(points, now, obs.position[i])
             _promote_if_ready(env, now)  # a plan that finished frees the planner for this tick
             if env.pending is None and now >= env.next_replan_s - 1e-9:
-                start = time.perf_counter()
+                start = time.thread_time()  # CPU time: a busy shared machine does not inflate it
                 velocity = obs.velocity[i]
                 if o.scaled:  # the planner thinks at its design speed: the flown velocity, scaled back
                     velocity = velocity * o.design_speed_mps / float(obs.desired_speed[i])
                 plan = self.plan(env.local_map, obs.position[i], velocity)
-                compute_s = time.perf_counter() - start
+                compute_s = time.thread_time() - start
                 self.replan_ms.append(1e3 * compute_s)
+                env.replan_ms.append(1e3 * compute_s)
                 env.pending = plan if plan is not None else stop_plan(obs.position[i])
                 env.pending_ready_s = now + (compute_s if o.fixed_latency_s is None else o.fixed_latency_s)
                 env.next_replan_s = now + 1.0 / o.replan_hz

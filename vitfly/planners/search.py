@@ -5,6 +5,12 @@ field, the winner smoothed with a B-spline and time-stretched to the speed and a
 Cost of a primitive (lower is better): effort (|a|^2 tau), minus progress along the goal direction, the
 deviation from the design speed, a soft clearance penalty inside ``safe_m``, and a small pull toward the
 home line (lateral / vertical centre of the course), as FastPlanner's goal point.
+
+Escape rule: a drone that starts inside the margin (it braked toward an obstacle seen late) or outside the
+course's box would find every primitive "in collision" and hold position there for ever; so the limits a
+primitive must keep are the margin and the box, or where the drone starts if that is already worse (a
+sample may not come closer to a mapped point, nor further out of the box, than the start). Primitives that
+move away stay allowed, and the clearance cost steers toward them.
 """
 
 from __future__ import annotations
@@ -47,6 +53,12 @@ def acceleration_primitives(accel_max_mps2: float, steps: int) -> np.ndarray:
     return grid[np.linalg.norm(grid, axis=1) <= accel_max_mps2 * (1 + 1e-9)]
 
 
+def _box_excess_m(y_m, z_m, s: SearchSettings):
+    """How far (m) a point lies outside the course's box (0 inside): the largest of its overshoots."""
+    return np.maximum.reduce([np.zeros_like(np.asarray(y_m, dtype=np.float64)), s.z_min_m - z_m, z_m - s.z_max_m,
+                              np.abs(y_m) - s.y_abs_max_m])
+
+
 def kinodynamic_search(local_map: LocalMap, position_m, velocity_mps, goal_direction, s: SearchSettings) -> Plan | None:
     """The cheapest collision-free sequence of ``s.levels`` primitives from (position, velocity), world frame,
     smoothed and limited; None when every first primitive collides."""
@@ -58,6 +70,9 @@ def kinodynamic_search(local_map: LocalMap, position_m, velocity_mps, goal_direc
     p = np.asarray(position_m, dtype=np.float64).reshape(1, 3)
     v = np.asarray(velocity_mps, dtype=np.float64).reshape(1, 3)
     cost = np.zeros(1)
+    # the escape rule: where the start already breaks a limit, the start is the limit (see the module doc)
+    margin_m = min(s.margin_m, float(local_map.distance_m(p, upper_bound_m=s.margin_m)[0]))
+    start_excess_m = _box_excess_m(p[0, 1], p[0, 2], s)
     history: list[np.ndarray] = [p]  # end positions per level, rows follow the surviving nodes
     velocities: list[np.ndarray] = [v]
     for _ in range(s.levels):
@@ -67,11 +82,11 @@ def kinodynamic_search(local_map: LocalMap, position_m, velocity_mps, goal_direc
         clearance = local_map.distance_m(samples, upper_bound_m=s.safe_m).min(axis=2)  # (N, P)
         y, z = samples[..., 1], samples[..., 2]
         ok = (
-            (clearance >= s.margin_m)
+            (clearance >= margin_m)
             # over the design speed only while slowing down (the drone may start faster than it)
             & ((np.linalg.norm(v_end, axis=2) <= s.speed_mps * 1.05)
                | (np.linalg.norm(v_end, axis=2) < np.linalg.norm(v, axis=1)[:, None]))
-            & np.all((z >= s.z_min_m) & (z <= s.z_max_m) & (np.abs(y) <= s.y_abs_max_m), axis=2)
+            & np.all(_box_excess_m(y, z, s) <= start_excess_m + 1e-9, axis=2)
         )
         if not ok.any():
             break
@@ -98,7 +113,7 @@ def kinodynamic_search(local_map: LocalMap, position_m, velocity_mps, goal_direc
     waypoints = np.stack([h[0] for h in history])
     times = tau * np.arange(len(waypoints))
     plan = smooth_through_waypoints(times, waypoints, velocities[0][0], velocities[-1][0], s.sample_dt_s)
-    if local_map.distance_m(plan.position_m, upper_bound_m=s.margin_m).min() < s.margin_m:
+    if local_map.distance_m(plan.position_m, upper_bound_m=s.margin_m).min() < margin_m - 1e-9:
         # the spline cut a corner the primitives went round: fly the primitives' own path instead
         tk = np.arange(0.0, times[-1] + 1e-9, s.sample_dt_s)
         level = np.minimum((tk // tau).astype(int), len(waypoints) - 2)

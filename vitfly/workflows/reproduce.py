@@ -11,8 +11,11 @@ Stages (each resumes after a kill; a rerun skips what is done with the same sett
    ``evaluate.speeds``), ``OUT/eval/window`` (3 m/s) and ``OUT/eval/ablation`` (with and without state,
    spheres and trees); sweeps resume per trial (``stage_evaluate``);
 4. ``paths``: repeated trials of one fixed spheres scene (``vitfly.eval.repeats``) into ``OUT/eval/paths``;
-5. ``latency``: the latency table (``vitfly.eval.latency.benchmark_model``) into ``OUT/latency.json``;
-6. ``report``: the paper's figures in ``OUT/figures``, ``OUT/ablation.md``, ``OUT/latency.md``,
+5. ``modular``: the modular baselines (``modular:NAME``, ``vitfly.planners``) beside ``modular.models`` and
+   ``modular.baselines`` in spheres at ``modular.speeds``, all on the scenes of one sweep seed, into
+   ``OUT/eval/modular`` (resumes per trial);
+6. ``latency``: the latency table (``vitfly.eval.latency.benchmark_model``) into ``OUT/latency.json``;
+7. ``report``: the paper's figures in ``OUT/figures``, ``OUT/ablation.md``, ``OUT/latency.md``,
    ``OUT/results.md`` (each finding of the paper with ours beside it and a verdict,
    ``vitfly.eval.findings``) and ``OUT/results.json``.
 
@@ -36,6 +39,7 @@ from vitfly.workflows.reproduce_config import (
     ReproduceConfig,
     done_checkpoint,
     eval_stage,
+    modular_stage,
     paths_plan,
     runs,
     train_callbacks,
@@ -149,6 +153,37 @@ def stage_paths(cfg: ReproduceConfig, checkpoints: dict[str, Path]) -> None:
         print(f"[paths] {label}: {flown} repeats flown, {before} done before")
 
 
+def modular_plan(cfg: ReproduceConfig, checkpoints: dict[str, Path | str]) -> list[tuple[str, str, str | None]]:
+    """(policy, label, planners YAML) of the modular comparison, flown on the same scenes: the learned models and
+    the baselines first (cheap: an interrupted study has them to pair with), then the planners."""
+    m = cfg.modular
+    return ([(str(checkpoints[model]), model, None) for model in m.models if model in checkpoints]
+            + [(b, b, None) for b in m.baselines] + [(f"modular:{p}", p, m.planner_config) for p in m.planners])
+
+
+def stage_modular(cfg: ReproduceConfig, checkpoints: dict[str, Path | str], progress: bool = True) -> None:
+    """Fly the modular comparison into ``OUT/eval/modular`` (each sweep resumes per trial), then its summary."""
+    from vitfly.eval.evaluation import write_outputs
+    from vitfly.eval.sweep import run_sweep
+    from vitfly.workflows.pipeline import sweep_config
+
+    m, out = cfg.modular, cfg.eval_dir("modular")
+    if not m.planners:
+        print("[modular] no planners configured (modular.planners): nothing to fly")
+        return
+    missing = [model for model in m.models if model not in checkpoints]
+    if missing:
+        print(f"[modular] {', '.join(missing)}: not in train.models, left out of the modular comparison")
+    for policy, name, planner_config in modular_plan(cfg, checkpoints):
+        speeds = m.speeds_of(name) if policy.startswith("modular:") else [float(v) for v in m.speeds]
+        sweep = dataclasses.replace(sweep_config(modular_stage(cfg, speeds), out, policy, name),
+                                    planner_config=planner_config)
+        outcome = run_sweep(sweep, progress=progress)
+        replaced = f", {outcome.replaced} stale trials (another setup) replaced" if outcome.replaced else ""
+        print(f"[modular] {sweep.label}: {outcome.flown} trials flown, {outcome.skipped} done before{replaced}")
+    write_outputs(out, with_plots=False, title=f"reproduce ({cfg.preset}): modular baselines")
+
+
 def _latency_key(cfg: ReproduceConfig, devices: list[str]) -> dict:
     return {"models": list(cfg.train.models), "devices": devices, **dataclasses.asdict(cfg.latency)}
 
@@ -199,12 +234,14 @@ def run_reproduce(cfg: ReproduceConfig, stages: list[str] | None = None, progres
             print(f"[train] train.source pretrained: flying the shipped weights of {', '.join(checkpoints)}")
         elif s == "train":
             checkpoints = stage_train_all(cfg, progress)
-        elif s in ("evaluate", "paths"):
+        elif s in ("evaluate", "paths", "modular"):
             checkpoints = checkpoints or trained_checkpoints(cfg)
             if s == "evaluate":
                 stage_evaluate_all(cfg, checkpoints, progress)
-            else:
+            elif s == "paths":
                 stage_paths(cfg, checkpoints)
+            else:
+                stage_modular(cfg, checkpoints, progress)
         elif s == "latency":
             stage_latency(cfg)
         timings[s] = time.perf_counter() - t0

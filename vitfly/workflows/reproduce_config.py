@@ -23,7 +23,7 @@ from vitfly.packaged import config_path, read_yaml
 from vitfly.workflows.pipeline import EvalStage, TrainStage
 
 PAPER_MODELS = ["convnet", "lstmnet", "unet_lstm", "vit", "vit_lstm"]
-STAGES = ("data", "train", "evaluate", "paths", "latency", "report")
+STAGES = ("data", "train", "evaluate", "paths", "modular", "latency", "report")
 
 
 @dataclass
@@ -81,6 +81,28 @@ class ReproducePaths:
 
 
 @dataclass
+class ReproduceModular:
+    """The paper's comparison with modular baselines: the planners (``modular:NAME``, ``vitfly.planners``) beside
+    learned models and baselines, every policy on the same spheres scenes (one sweep seed), at ``speeds`` m/s."""
+
+    planners: list[str] = field(default_factory=lambda: ["fastplanner", "fastplanner_scaled", "convex",
+                                                         "convex_scaled"])
+    planner_config: str | None = None  # planners YAML (None: the shipped configs/planners.yaml)
+    models: list[str] = field(default_factory=lambda: ["vit_lstm"])  # learned models flown beside (those in
+    # train.models: the others are left out)
+    baselines: list[str] = field(default_factory=lambda: ["expert"])
+    speeds: list[float] = field(default_factory=lambda: [1.0, 2.0, 3.0, 4.0, 5.0, 6.0, 7.0])
+    planner_speeds: dict = field(default_factory=dict)  # planner -> its own (fewer) speeds, where the budget asks
+    trials: int = 30  # per speed and policy
+    seed: int | None = None  # sweep seed of the scenes; None: evaluate.seed
+    num_envs: int | None = None  # lockstep scenes per policy call; None: evaluate.num_envs
+    workers: int | None = None  # worker processes; None: evaluate.workers
+
+    def speeds_of(self, planner: str) -> list[float]:
+        return [float(v) for v in self.planner_speeds.get(planner, self.speeds)]
+
+
+@dataclass
 class ReproduceLatency:
     iters: int = 1000
     warmup: int = 100
@@ -100,6 +122,7 @@ class ReproduceConfig:
     train: ReproduceTrain = field(default_factory=ReproduceTrain)
     evaluate: ReproduceEvaluate = field(default_factory=ReproduceEvaluate)
     paths: ReproducePaths = field(default_factory=ReproducePaths)
+    modular: ReproduceModular = field(default_factory=ReproduceModular)
     latency: ReproduceLatency = field(default_factory=ReproduceLatency)
 
     @property
@@ -138,7 +161,7 @@ def load_reproduce_config(path: str | os.PathLike | None, preset: str | None = N
     data.update({k: v for k, v in (overrides or {}).items() if v is not None})
     sections = {}
     for name, cls in (("train", ReproduceTrain), ("evaluate", ReproduceEvaluate), ("paths", ReproducePaths),
-                      ("latency", ReproduceLatency)):
+                      ("modular", ReproduceModular), ("latency", ReproduceLatency)):
         sections[name] = dataclass_from_dict(cls, data.pop(name, None) or {}, f"{source}: {name}")
     cfg = dataclasses.replace(dataclass_from_dict(ReproduceConfig, data, source), **sections)
     check_config(cfg, source)
@@ -170,6 +193,7 @@ def check_config(cfg: ReproduceConfig, source: str) -> None:
             raise VitflyError(f"{source}: evaluate.{name} must be >= 1")
     if cfg.paths.repeats < 1 or cfg.paths.jitter_m < 0:
         raise VitflyError(f"{source}: paths.repeats must be >= 1 and paths.jitter_m >= 0")
+    check_modular(cfg, source)
     for m in cfg.train.models:  # every recipe read (and checked) before anything runs
         train_stage(cfg, m, True, source)
     if t.closed_loop_check is not None:
@@ -178,6 +202,47 @@ def check_config(cfg: ReproduceConfig, source: str) -> None:
 
     sweep_config(eval_stage(cfg, ["spheres"], cfg.evaluate.speeds, 1), cfg.eval_dir("spheres"),
                  "expert").validate(f"{source}: evaluate")
+
+
+def check_modular(cfg: ReproduceConfig, source: str) -> None:
+    """The ``modular`` section: known planners (read from their YAML), learned models that the study has,
+    baselines, speeds and trial counts."""
+    from vitfly.planners import load_planner_options
+
+    m = cfg.modular
+    for name in m.planners:
+        try:
+            load_planner_options(name, m.planner_config)
+        except VitflyError as err:
+            raise VitflyError(f"{source}: modular.planners: {err}") from None
+    from vitfly.zoo import list_models
+
+    for model in m.models:  # one the study does not train is left out when the stage runs (it says so)
+        if model not in list_models():
+            raise VitflyError(f"{source}: modular.models has {model!r}; known: {', '.join(list_models())}")
+    for b in m.baselines:
+        if b not in ("expert", "straight"):
+            raise VitflyError(f"{source}: modular.baselines has {b!r}; expected expert and/or straight")
+    for name, speeds in m.planner_speeds.items():
+        if name not in m.planners:
+            raise VitflyError(f"{source}: modular.planner_speeds has {name!r}, which modular.planners does not fly")
+        if not isinstance(speeds, list) or not speeds or not all(
+                isinstance(v, (int, float)) and not isinstance(v, bool) and v > 0 for v in speeds):
+            raise VitflyError(f"{source}: modular.planner_speeds.{name} must be a list of speeds > 0 m/s, "
+                              f"got {speeds!r}")
+    if not m.speeds or any(v <= 0 for v in m.speeds):
+        raise VitflyError(f"{source}: modular.speeds must be a list of speeds > 0 m/s, got {m.speeds!r}")
+    if m.trials < 1 or any(v is not None and v < 1 for v in (m.num_envs, m.workers)):
+        raise VitflyError(f"{source}: modular.trials, modular.num_envs and modular.workers must be >= 1")
+
+
+def modular_stage(cfg: ReproduceConfig, speeds: list[float]) -> EvalStage:
+    """The evaluation settings of the modular comparison: spheres, its own seed, trial count and speeds."""
+    m = cfg.modular
+    stage = eval_stage(cfg, ["spheres"], speeds, m.trials)
+    return dataclasses.replace(stage, seed=cfg.evaluate.seed if m.seed is None else m.seed,
+                               num_envs=stage.num_envs if m.num_envs is None else m.num_envs,
+                               workers=stage.workers if m.workers is None else m.workers)
 
 
 def _closed_loop_check(kwargs: dict, source: str):

@@ -133,7 +133,7 @@ def stage_report(cfg: ReproduceConfig) -> dict:
     out, figures = cfg.out_dir, cfg.out_dir / "figures"
     rows: dict[str, list[dict] | None] = {}
     recs: dict[str, list] = {}
-    for name in ("spheres", "trees", "window", "ablation", "paths"):
+    for name in ("spheres", "trees", "window", "ablation", "paths", "modular"):
         rows[name], recs[name] = _summary(cfg.eval_dir(name))
     files: dict[str, Path] = {}
     for env in ("spheres", "trees"):
@@ -160,6 +160,14 @@ def stage_report(cfg: ReproduceConfig) -> dict:
         files["window_paths"] = plot_paths(window_recs, figures / "window_paths.png",
                                            scene_of(window_recs, "window", window_recs[0].preset, seed),
                                            title=f"window at {window_recs[0].speed:g} m/s, scene seed {seed}")
+    modular_md = ""
+    if recs["modular"]:
+        from vitfly.eval.modular_baselines import modular_markdown
+
+        files["modular_baselines"] = paper_figures.modular_baselines_figure(
+            rows["modular"], recs["modular"], figures / "modular_baselines.png")
+        modular_md = modular_markdown(rows["modular"], recs["modular"])
+        write_text(out / "modular.md", modular_md)
     ablation_md = ""
     if rows["ablation"]:
         ablation_md, ablation_csv = _ablation_tables(cfg, rows["ablation"])
@@ -170,12 +178,13 @@ def stage_report(cfg: ReproduceConfig) -> dict:
         latency_md = latency_markdown(json.loads((out / "latency.json").read_text())["results"])
         write_text(out / "latency.md", latency_md)
     findings = paper_findings(rows["spheres"], rows["trees"], rows["window"], rows["ablation"], lateral)
-    paired = paired_findings(recs["spheres"], recs["trees"], recs["window"], recs["ablation"])
+    paired = paired_findings(recs["spheres"], recs["trees"], recs["window"], recs["ablation"], recs["modular"])
     paired_md = paired_markdown(paired, recs)
-    text = results_markdown(cfg, findings_markdown(findings), files, ablation_md, latency_md, lateral, paired_md)
+    text = results_markdown(cfg, findings_markdown(findings), files, ablation_md, latency_md, lateral, paired_md,
+                            modular_md)
     write_text(out / "results.md", text)
     result = {"preset": cfg.preset, "findings": [f.to_dict() for f in findings],
-              "paired_findings": [f.to_dict() for f in paired],
+              "paired_findings": [f.to_dict() for f in paired], "modular": _modular_numbers(rows, recs),
               "max_mean_lateral_deviation_m": lateral,
               "files": {k: str(v) for k, v in files.items()}, "config": dataclasses.asdict(cfg)}
     write_text(out / "results.json", json.dumps(result, indent=2, default=str) + "\n")
@@ -188,6 +197,17 @@ def stage_report(cfg: ReproduceConfig) -> dict:
     return result
 
 
+def _modular_numbers(rows: dict, recs: dict) -> dict:
+    """The modular comparison's velocity-matching target and replan times, for results.json ({} if not flown)."""
+    if not recs.get("modular"):
+        return {}
+    from vitfly.eval.modular_baselines import planner_policies, replan_latency, velocity_matching
+
+    return {"velocity_matching": [t.to_dict() for t in velocity_matching(rows["modular"],
+                                                                         planner_policies(recs["modular"]))],
+            "replan_latency": replan_latency(recs["modular"])}
+
+
 def paired_markdown(paired: list, recs: dict[str, list | None]) -> str:
     """The paired findings table, then ViT+LSTM's success against every other policy in each sweep."""
     from vitfly.eval.paired_findings import lead_table, paired_findings_markdown
@@ -197,6 +217,11 @@ def paired_markdown(paired: list, recs: dict[str, list | None]) -> str:
         if recs.get(sweep) and any(r.policy == "vit_lstm" for r in recs[sweep]):
             parts += [f"ViT+LSTM's success minus each policy's in {sweep} (paired over the same scenes; "
                       "* the 95 % interval excludes 0):", "", lead_table(recs[sweep], sweep)]
+    if recs.get("modular") and any(r.policy == "vit_lstm" for r in recs["modular"]):
+        for metric, words in (("success", "success"), ("speed_error", "speed error abs(actual / desired - 1)")):
+            parts += [f"ViT+LSTM's {words} minus each policy's in the modular comparison (spheres, paired over the "
+                      "same scenes; * the 95 % interval excludes 0):", "",
+                      lead_table(recs["modular"], "spheres", metric=metric)]
     return "\n".join(parts)
 
 
@@ -227,7 +252,7 @@ def _record_closed_loop(cfg: ReproduceConfig, rows: dict) -> None:
 
 
 def results_markdown(cfg: ReproduceConfig, findings_md: str, files: dict[str, Path], ablation_md: str,
-                     latency_md: str, lateral: dict[str, float], paired_md: str = "") -> str:
+                     latency_md: str, lateral: dict[str, float], paired_md: str = "", modular_md: str = "") -> str:
     e = cfg.evaluate
     rel = {k: os.path.relpath(v, cfg.out_dir) for k, v in files.items()}
     figure_lines = [f"- {k.replace('_', ' ')}: ![{k}]({v})" for k, v in rel.items()]
@@ -274,6 +299,13 @@ def results_markdown(cfg: ReproduceConfig, findings_md: str, files: dict[str, Pa
         "## Ablation: state input",
         "",
         ablation_md or "(not evaluated)",
+        "## Modular baselines",
+        "",
+        (f"Spheres, scenes of sweep seed {cfg.modular.seed if cfg.modular.seed is not None else e.seed}, "
+         f"{cfg.modular.trials} trials per speed and policy (figure: modular baselines; the finding above).")
+        if modular_md else "",
+        "",
+        modular_md or "(not flown)",
         "## Latency",
         "",
         latency_md or "(not measured)",
