@@ -15,8 +15,8 @@ import torch
 from test_augment_mirror import RecordBatches
 from test_datamodule import write_dataset
 
-from vitfly.datamodules.dataset import TrajectoryDataset
 from vitfly.datamodules.datamodule import TrajectoryDataModule
+from vitfly.datamodules.dataset import TrajectoryDataset
 from vitfly.datamodules.sensor_augment import SensorRandomisation, check_sensor, sensor_coins
 from vitfly.errors import VitflyError
 from vitfly.sensors.stereo import ImageGeometry
