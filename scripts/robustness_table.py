@@ -1,0 +1,101 @@
+"""The robustness study's table: each network's success with exact and with modelled (d435) depth, before and
+after sensor-model randomisation in training, paired over the same scenes (docs/results.md#robustness).
+
+Policies are named ``NAME`` (shipped weights, exact depth), ``NAME-d435`` (shipped, ``--sensor d435``),
+``NAME_dr`` (fine-tuned with ``data.sensor_prob``, exact) and ``NAME_dr-d435``; every sweep directory given is
+read (``trials*.jsonl``) and the records are merged, so the four may come from different directories flown with
+the same ``--seed``. Writes ``paired.csv`` (every comparison below, per speed and pooled), ``summary.csv``
+(success per policy, env and speed) and ``table.md``.
+
+    python scripts/robustness_table.py runs/robust/spheres runs/robust/course runs/robust/ft_spheres \
+        runs/robust/ft_course --out docs/results/robustness
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import sys
+from collections import defaultdict
+from pathlib import Path
+
+from vitfly.eval.paired import paired_difference
+from vitfly.eval.records import read_sweep
+
+ARCHS = {"convnet": "ConvNet", "lstmnet": "LSTMnet", "unet_lstm": "UNet+LSTM", "vit": "ViT", "vit_lstm": "ViT+LSTM"}
+# (label, a, b): a - b
+COMPARISONS = (
+    ("loss to the sensor, shipped", "{m}-d435", "{m}"),
+    ("loss to the sensor, randomised", "{m}_dr-d435", "{m}_dr"),
+    ("won back with the sensor", "{m}_dr-d435", "{m}-d435"),
+    ("change with exact depth", "{m}_dr", "{m}"),
+)
+
+
+def pct(x: float) -> str:
+    return f"{100 * x:+.0f}"
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("dirs", nargs="+", help="sweep directories (trials*.jsonl)")
+    parser.add_argument("--out", required=True, help="output directory")
+    args = parser.parse_args(argv)
+    records = [r for d in args.dirs for r in read_sweep(d)]
+    if not records:
+        print(f"{args.dirs[0]}: no trials", file=sys.stderr)
+        return 1
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+
+    rates: dict[tuple[str, str, float], list[int]] = defaultdict(list)
+    for r in records:
+        rates[(r.policy, r.env, float(r.speed))].append(int(bool(r.success_paper)))
+    with open(out / "summary.csv", "w", newline="") as fh:
+        w = csv.writer(fh)
+        w.writerow(["policy", "env", "speed", "trials", "success"])
+        for (policy, env, speed), v in sorted(rates.items()):
+            w.writerow([policy, env, f"{speed:g}", len(v), f"{sum(v) / len(v):.4f}"])
+
+    envs = sorted({r.env for r in records}, key=lambda e: (e != "spheres", e))
+    speeds = sorted({float(r.speed) for r in records})
+    rows, md = [], []
+    for env in envs:
+        md += [f"### {env}", "",
+               "| network | speed (m/s) | exact | d435 | exact, randomised | d435, randomised | "
+               + " | ".join(c[0] for c in COMPARISONS) + " |",
+               "|---|---:|---:|---:|---:|---:|" + "---:|" * len(COMPARISONS)]
+        for m, label in ARCHS.items():
+            for sp in [[s] for s in speeds] + [None]:
+                cells = []
+                for name in (m, f"{m}-d435", f"{m}_dr", f"{m}_dr-d435"):
+                    v = [x for s in (sp or speeds) for x in rates.get((name, env, s), [])]
+                    cells.append(f"{100 * sum(v) / len(v):.0f} % (n={len(v)})" if v else "-")
+                if all(c == "-" for c in cells):
+                    continue
+                diffs = []
+                for what, a, b in COMPARISONS:
+                    d = paired_difference(records, a.format(m=m), b.format(m=m), env, "success", sp)
+                    if d is None:
+                        diffs.append("-")
+                        continue
+                    diffs.append(f"{pct(d.diff)} ({pct(d.low)} to {pct(d.high)}), n={d.pairs}")
+                    rows.append({"env": env, "network": m, "comparison": what, "a": d.a, "b": d.b,
+                                 "speed": "all" if sp is None else f"{sp[0]:g}", "pairs": d.pairs,
+                                 "mean_a": f"{d.mean_a:.4f}", "mean_b": f"{d.mean_b:.4f}", "diff": f"{d.diff:.4f}",
+                                 "low": f"{d.low:.4f}", "high": f"{d.high:.4f}",
+                                 "mcnemar_p": "" if d.mcnemar_p is None else f"{d.mcnemar_p:.4g}"})
+                speed = "all" if sp is None else f"{sp[0]:g}"
+                md.append(f"| {label} | {speed} | " + " | ".join(cells + diffs) + " |")
+        md.append("")
+    with open(out / "paired.csv", "w", newline="") as fh:
+        w = csv.DictWriter(fh, fieldnames=list(rows[0]) if rows else ["env"])
+        w.writeheader()
+        w.writerows(rows)
+    (out / "table.md").write_text("\n".join(md) + "\n")
+    print(f"wrote {out / 'paired.csv'}, {out / 'summary.csv'}, {out / 'table.md'}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
