@@ -6,6 +6,7 @@ b = 0.05 m, disparity quantised to 1/32 px, deployed as 0.8 x z / 10 m, no depth
 
 from __future__ import annotations
 
+import json
 import math
 
 import lightning as L
@@ -106,6 +107,18 @@ def test_geometry_from_recorded_camera_matches_the_camera():
 def test_bad_settings_are_one_line(tmp_path, kwargs, message):
     with pytest.raises(VitflyError, match=message):
         TrajectoryDataModule(str(tmp_path / "x.h5"), **kwargs)
+
+
+def test_dataset_of_modelled_frames_is_refused(tmp_path):
+    import h5py
+
+    path = write_dataset(tmp_path / "d.h5", [4, 5, 6])
+    with h5py.File(path, "a") as f:
+        f.attrs["config"] = json.dumps({"collect": {"sensor": {"model": "d435"}}})
+    dm = TrajectoryDataModule(path, val_fraction=0.34, sensor_prob=0.5, sensor={"model": "d435"})
+    with pytest.raises(VitflyError, match=r"d.h5: field config.collect.sensor is 'd435': its frames are already"):
+        dm.setup("fit")
+    TrajectoryDataModule(path, val_fraction=0.34).setup("fit")  # without randomisation it trains as before
 
 
 def test_datamodule_models_training_batches_only(tmp_path, one_torch_thread):

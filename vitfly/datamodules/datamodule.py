@@ -332,6 +332,11 @@ class TrajectoryDataModule(L.LightningDataModule):
             with open_trajectories(self.data_path) as tf:  # the one full validation of the file
                 self._ids = TrajectoryIds.of(tf)
                 self.sensor = dict(tf.sensor)
+                recorded_model = ((tf.config or {}).get("collect") or {}).get("sensor")
+            if self.sensor_prob > 0.0 and recorded_model:  # modelling a modelled frame twice
+                model = recorded_model.get("model") if isinstance(recorded_model, dict) else recorded_model
+                raise VitflyError(f"{self.data_path}: field config.collect.sensor is {model!r}: its frames are "
+                                  "already modelled; data.sensor_prob expects a dataset of exact renders")
             frozen = self._frozen_record()
             if frozen is not None:
                 split = self._reuse(*frozen)
