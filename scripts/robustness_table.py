@@ -19,7 +19,10 @@ import sys
 from collections import defaultdict
 from pathlib import Path
 
-from vitfly.eval.paired import paired_difference
+import numpy as np
+from scipy.stats import bootstrap
+
+from vitfly.eval.paired import paired_difference, pairs
 from vitfly.eval.records import read_sweep
 
 ARCHS = {"convnet": "ConvNet", "lstmnet": "LSTMnet", "unet_lstm": "UNet+LSTM", "vit": "ViT", "vit_lstm": "ViT+LSTM"}
@@ -30,6 +33,24 @@ COMPARISONS = (
     ("won back with the sensor", "{m}_dr-d435", "{m}-d435"),
     ("change with exact depth", "{m}_dr", "{m}"),
 )
+
+
+def kept(records, exact: str, modelled: str, env: str, speeds) -> tuple[float, float, float, int] | None:
+    """Share of exact-depth success kept with modelled depth on the same scenes, success(modelled) /
+    success(exact), with a 95 % percentile interval from a paired bootstrap over scenes; None without pairs."""
+    _, _, e, m = pairs(records, exact, modelled, env, "success", speeds)
+    if len(e) == 0 or e.sum() == 0:
+        return None
+    point = m.mean() / e.mean()
+    if len(e) < 2 or (np.all(e == m)):
+        return point, point, point, len(e)
+
+    def ratio(a, b, axis=-1):
+        return b.mean(axis=axis) / np.maximum(a.mean(axis=axis), 1e-12)
+
+    ci = bootstrap((e, m), ratio, paired=True, vectorized=True, n_resamples=10_000, method="percentile",
+                   rng=np.random.default_rng(0)).confidence_interval
+    return float(point), float(ci.low), float(ci.high), len(e)
 
 
 def pct(x: float) -> str:
@@ -63,8 +84,8 @@ def main(argv: list[str] | None = None) -> int:
     for env in envs:
         md += [f"### {env}", "",
                "| network | speed (m/s) | exact | d435 | exact, randomised | d435, randomised | "
-               + " | ".join(c[0] for c in COMPARISONS) + " |",
-               "|---|---:|---:|---:|---:|---:|" + "---:|" * len(COMPARISONS)]
+               + " | ".join(c[0] for c in COMPARISONS) + " | kept with d435, shipped | kept, randomised |",
+               "|---|---:|---:|---:|---:|---:|" + "---:|" * (len(COMPARISONS) + 2)]
         for m, label in ARCHS.items():
             for sp in [[s] for s in speeds] + [None]:
                 cells = []
@@ -86,6 +107,14 @@ def main(argv: list[str] | None = None) -> int:
                                  "low": f"{d.low:.4f}", "high": f"{d.high:.4f}",
                                  "mcnemar_p": "" if d.mcnemar_p is None else f"{d.mcnemar_p:.4g}"})
                 speed = "all" if sp is None else f"{sp[0]:g}"
+                for exact, modelled in ((m, f"{m}-d435"), (f"{m}_dr", f"{m}_dr-d435")):
+                    k = kept(records, exact, modelled, env, sp)
+                    diffs.append("-" if k is None else f"{100 * k[0]:.0f} % ({100 * k[1]:.0f}-{100 * k[2]:.0f})")
+                    if k is not None:
+                        rows.append({"env": env, "network": m, "comparison": "kept: success modelled / exact",
+                                     "a": modelled, "b": exact, "speed": speed, "pairs": k[3], "mean_a": "",
+                                     "mean_b": "", "diff": f"{k[0]:.4f}", "low": f"{k[1]:.4f}",
+                                     "high": f"{k[2]:.4f}", "mcnemar_p": ""})
                 md.append(f"| {label} | {speed} | " + " | ".join(cells + diffs) + " |")
         md.append("")
     with open(out / "paired.csv", "w", newline="") as fh:
