@@ -16,6 +16,7 @@ from __future__ import annotations
 import argparse
 import csv
 import sys
+import warnings
 from collections import defaultdict
 from pathlib import Path
 
@@ -45,11 +46,14 @@ def kept(records, exact: str, modelled: str, env: str, speeds) -> tuple[float, f
     if len(e) < 2 or (np.all(e == m)):
         return point, point, point, len(e)
 
-    def ratio(a, b, axis=-1):
-        return b.mean(axis=axis) / np.maximum(a.mean(axis=axis), 1e-12)
+    def ratio(a, b, axis=-1):  # a resample without an exact-depth success has no ratio: unbounded
+        ea = a.mean(axis=axis)
+        return np.where(ea > 0, b.mean(axis=axis) / np.where(ea > 0, ea, 1.0), np.inf)
 
-    ci = bootstrap((e, m), ratio, paired=True, vectorized=True, n_resamples=10_000, method="percentile",
-                   rng=np.random.default_rng(0)).confidence_interval
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # the spread of resamples holding inf (unbounded ratios)
+        ci = bootstrap((e, m), ratio, paired=True, vectorized=True, n_resamples=10_000, method="percentile",
+                       rng=np.random.default_rng(0)).confidence_interval
     return float(point), float(ci.low), float(ci.high), len(e)
 
 
@@ -109,7 +113,8 @@ def main(argv: list[str] | None = None) -> int:
                 speed = "all" if sp is None else f"{sp[0]:g}"
                 for exact, modelled in ((m, f"{m}-d435"), (f"{m}_dr", f"{m}_dr-d435")):
                     k = kept(records, exact, modelled, env, sp)
-                    diffs.append("-" if k is None else f"{100 * k[0]:.0f} % ({100 * k[1]:.0f}-{100 * k[2]:.0f})")
+                    high = "unbounded" if k is not None and not np.isfinite(k[2]) else f"{100 * k[2]:.0f}" if k else ""
+                    diffs.append("-" if k is None else f"{100 * k[0]:.0f} % ({100 * k[1]:.0f}-{high})")
                     if k is not None:
                         rows.append({"env": env, "network": m, "comparison": "kept: success modelled / exact",
                                      "a": modelled, "b": exact, "speed": speed, "pairs": k[3], "mean_a": "",
