@@ -121,11 +121,12 @@ def test_dataset_of_modelled_frames_is_refused(tmp_path):
     TrajectoryDataModule(path, val_fraction=0.34).setup("fit")  # without randomisation it trains as before
 
 
-def test_datamodule_models_training_batches_only(tmp_path, one_torch_thread):
+@pytest.mark.parametrize("resident", [False, True])
+def test_datamodule_models_training_batches_only(tmp_path, one_torch_thread, resident):
     path = write_dataset(tmp_path / "d.h5", [6, 9, 4, 7, 5])
     ds = TrajectoryDataset(path)
     dm = TrajectoryDataModule(path, batch_size=2, val_fraction=0.4, cache_mb=8, mirror_prob=1.0, sensor_prob=1.0,
-                              sensor=QUIET)
+                              sensor=QUIET, resident=resident)
     record = RecordBatches()
     trainer = L.Trainer(max_epochs=1, logger=False, enable_checkpointing=False, enable_progress_bar=False,
                         enable_model_summary=False, default_root_dir=tmp_path, callbacks=[record],
