@@ -57,6 +57,28 @@ def kept(records, exact: str, modelled: str, env: str, speeds) -> tuple[float, f
     return float(point), float(ci.low), float(ci.high), len(e)
 
 
+def compact(records, envs, speeds) -> str:
+    """One row per network and env: pooled success and paired differences (points, 95 % interval)."""
+    lines = ["| network | env | success exact / d435, shipped | d435 - exact, shipped | success exact / d435, "
+             "randomised | d435 - exact, randomised | won back: d435, randomised - shipped | exact, randomised - "
+             "shipped |", "|---|---|---:|---:|---:|---:|---:|---:|"]
+    for env in envs:
+        for m, label in ARCHS.items():
+            if not any(r.policy == f"{m}-d435" and r.env == env for r in records):
+                continue
+            cells = []
+            for exact, modelled in ((m, f"{m}-d435"), (f"{m}_dr", f"{m}_dr-d435")):
+                d = paired_difference(records, modelled, exact, env, "success")
+                cells += ["-", "-"] if d is None else [
+                    f"{100 * d.mean_b:.0f} / {100 * d.mean_a:.0f} %", f"{pct(d.diff)} [{pct(d.low)}, {pct(d.high)}]"]
+            for a, b in ((f"{m}_dr-d435", f"{m}-d435"), (f"{m}_dr", m)):
+                d = paired_difference(records, a, b, env, "success")
+                cells.append("-" if d is None else f"{pct(d.diff)} [{pct(d.low)}, {pct(d.high)}]")
+            n = len({(r.scene_seed, r.speed) for r in records if r.policy == m and r.env == env})
+            lines.append(f"| {label} | {env} (n={n}) | " + " | ".join(cells) + " |")
+    return "\n".join(lines) + "\n"
+
+
 def pct(x: float) -> str:
     return f"{100 * x:+.0f}"
 
@@ -104,7 +126,7 @@ def main(argv: list[str] | None = None) -> int:
                     if d is None:
                         diffs.append("-")
                         continue
-                    diffs.append(f"{pct(d.diff)} ({pct(d.low)} to {pct(d.high)}), n={d.pairs}")
+                    diffs.append(f"{pct(d.diff)} [{pct(d.low)}, {pct(d.high)}], n={d.pairs}")
                     rows.append({"env": env, "network": m, "comparison": what, "a": d.a, "b": d.b,
                                  "speed": "all" if sp is None else f"{sp[0]:g}", "pairs": d.pairs,
                                  "mean_a": f"{d.mean_a:.4f}", "mean_b": f"{d.mean_b:.4f}", "diff": f"{d.diff:.4f}",
@@ -114,7 +136,7 @@ def main(argv: list[str] | None = None) -> int:
                 for exact, modelled in ((m, f"{m}-d435"), (f"{m}_dr", f"{m}_dr-d435")):
                     k = kept(records, exact, modelled, env, sp)
                     high = "unbounded" if k is not None and not np.isfinite(k[2]) else f"{100 * k[2]:.0f}" if k else ""
-                    diffs.append("-" if k is None else f"{100 * k[0]:.0f} % ({100 * k[1]:.0f}-{high})")
+                    diffs.append("-" if k is None else f"{100 * k[0]:.0f} % [{100 * k[1]:.0f}, {high}]")
                     if k is not None:
                         rows.append({"env": env, "network": m, "comparison": "kept: success modelled / exact",
                                      "a": modelled, "b": exact, "speed": speed, "pairs": k[3], "mean_a": "",
@@ -127,6 +149,7 @@ def main(argv: list[str] | None = None) -> int:
         w.writeheader()
         w.writerows(rows)
     (out / "table.md").write_text("\n".join(md) + "\n")
+    (out / "compact.md").write_text(compact(records, envs, speeds))
     print(f"wrote {out / 'paired.csv'}, {out / 'summary.csv'}, {out / 'table.md'}")
     return 0
 
