@@ -29,10 +29,10 @@ from vitfly.eval.records import read_sweep
 ARCHS = {"convnet": "ConvNet", "lstmnet": "LSTMnet", "unet_lstm": "UNet+LSTM", "vit": "ViT", "vit_lstm": "ViT+LSTM"}
 # (label, a, b): a - b
 COMPARISONS = (
-    ("loss to the sensor, shipped", "{m}-d435", "{m}"),
-    ("loss to the sensor, randomised", "{m}_dr-d435", "{m}_dr"),
-    ("won back with the sensor", "{m}_dr-d435", "{m}-d435"),
-    ("change with exact depth", "{m}_dr", "{m}"),
+    ("d435 - exact, shipped", "{m}-d435", "{m}"),
+    ("d435 - exact, randomised", "{m}_dr-d435", "{m}_dr"),
+    ("won back: d435, randomised - shipped", "{m}_dr-d435", "{m}-d435"),
+    ("exact, randomised - shipped", "{m}_dr", "{m}"),
 )
 
 
