@@ -40,6 +40,7 @@ from vitfly.datamodules.resident import (
     resident_bytes,
 )
 from vitfly.datamodules.schema import open_trajectories
+from vitfly.datamodules.sensor_augment import SensorRandomisation, check_sensor
 from vitfly.datamodules.split import (
     SPLIT_FILE,
     Split,
@@ -172,6 +173,12 @@ class TrajectoryDataModule(L.LightningDataModule):
         mirror_prob: probability that a training trajectory (or window) is mirrored left-right in an
             epoch: depth flipped, the command's y and the attitude mirrored (``vitfly.datamodules.augment``).
             Training batches only; default 0.0 (off, the paper's training).
+        sensor_prob: probability that a training trajectory (or window) is seen through ``sensor`` in an epoch
+            (a seeded coin per trajectory, window start and epoch; default 0.0: off): its exact frames become the
+            sensor model's deployed frames (``vitfly.datamodules.sensor_augment``), after any mirroring.
+        sensor: the sensor model for ``sensor_prob``, as ``vitfly evaluate --sensor`` takes it:
+            ``{model: d435, FIELD: VALUE, ...}`` (fields of ``vitfly.sensors.stereo.StereoDepthConfig``);
+            the camera geometry is the dataset's. Validation batches keep their exact frames.
         resident: keep the whole dataset (uint8 depth) on the training device and gather the train and
             validation batches there; the loader then hands over only trajectory/window indices
             (``vitfly.datamodules.resident``). ``auto``: on a CUDA device when the dataset takes at
@@ -201,6 +208,8 @@ class TrajectoryDataModule(L.LightningDataModule):
         test_path: str | None = None,
         predict_path: str | None = None,
         mirror_prob: float = 0.0,
+        sensor_prob: float = 0.0,
+        sensor: dict[str, Any] | None = None,
         resident: bool | str = "auto",
         time_bucket_steps: int | None = None,
     ):
@@ -225,6 +234,9 @@ class TrajectoryDataModule(L.LightningDataModule):
         self.test_path = test_path
         self.predict_path = predict_path
         self.mirror_prob = check_mirror_prob(mirror_prob, "data.mirror_prob")
+        self.sensor_prob = float(sensor_prob)
+        self.sensor_config = check_sensor(sensor, self.sensor_prob)
+        self._sensor_aug: SensorRandomisation | None = None
         self.resident = resident
         self._resident: ResidentTrajectories | None = None
         self.train_indices: list[int] = []
@@ -320,6 +332,11 @@ class TrajectoryDataModule(L.LightningDataModule):
             with open_trajectories(self.data_path) as tf:  # the one full validation of the file
                 self._ids = TrajectoryIds.of(tf)
                 self.sensor = dict(tf.sensor)
+                recorded_model = ((tf.config or {}).get("collect") or {}).get("sensor")
+            if self.sensor_prob > 0.0 and recorded_model:  # modelling a modelled frame twice
+                model = recorded_model.get("model") if isinstance(recorded_model, dict) else recorded_model
+                raise VitflyError(f"{self.data_path}: field config.collect.sensor is {model!r}: its frames are "
+                                  "already modelled; data.sensor_prob expects a dataset of exact renders")
             frozen = self._frozen_record()
             if frozen is not None:
                 split = self._reuse(*frozen)
@@ -381,10 +398,20 @@ class TrajectoryDataModule(L.LightningDataModule):
         trainer = self.trainer
         if self.mirror_prob > 0.0 and trainer is not None and trainer.training:
             batch = random_mirror(batch, self.mirror_prob, self.split_seed, trainer.current_epoch)
+        if self.sensor_prob > 0.0 and trainer is not None and trainer.training:
+            batch = self.sensor_randomisation()(batch, self.split_seed, trainer.current_epoch)
         fitting = trainer is not None and (trainer.training or trainer.validating or trainer.sanity_checking)
         if self.time_bucket_steps and fitting:  # test/predict rows stay one per trajectory
             batch = pad_to_bucket(batch, self.time_bucket_steps, self.batch_size)
         return depth_to_unit_float(batch)
+
+    def sensor_randomisation(self) -> SensorRandomisation:
+        """The sensor model on the dataset's camera and depth range (after ``setup``)."""
+        if self._sensor_aug is None:
+            recorded = self.sensor or {}
+            self._sensor_aug = SensorRandomisation(self.sensor_config, self.sensor_prob, recorded.get("camera"),
+                                                   float(recorded.get("depth_max_m") or 10.0))
+        return self._sensor_aug
 
     # -- resident dataset (train/validation loaders only; test/predict may read other files) ----------
 
