@@ -6,7 +6,13 @@ import pytest
 
 from vitfly.errors import VitflyError
 from vitfly.eval.aggregate import summarize
-from vitfly.eval.modular_baselines import planner_policies, replan_latency, velocity_matching
+from vitfly.eval.modular_baselines import (
+    cruise_speed_mps,
+    cruise_speeds,
+    planner_policies,
+    replan_latency,
+    velocity_matching,
+)
 from vitfly.eval.paired_findings import modular_baselines
 from vitfly.eval.paper_figures import draw_modular_baselines, modular_baselines_figure
 from vitfly.eval.records import TrialRecord
@@ -26,7 +32,14 @@ def rec(policy, scene, speed, success=True, forward_mps=None, replan_ms=None):
     return TrialRecord(policy=policy, env="spheres", speed=speed, trial=scene, scene_seed=7000 + scene,
                        success_paper=success, success_strict=success, reached_goal=True, end_reason="goal",
                        metrics={"collisions": 0 if success else 1, "forward_speed_mps": forward,
-                                "speed_ratio": forward / speed}, path={}, setup={}, setup_id="s", extra=extra)
+                                "speed_ratio": forward / speed}, path=cruise_path(forward), setup={}, setup_id="s",
+                       extra=extra)
+
+
+def cruise_path(forward_mps):
+    """x = 0, 10 and 50 m at a constant forward speed: a cruise of exactly ``forward_mps``."""
+    times = [0.0, 10.0 / forward_mps, 50.0 / forward_mps]
+    return {"time": times, "position": [[x, 0.0, 2.0] for x in (0.0, 10.0, 50.0)]}
 
 
 def study(vit_fails=()):
@@ -100,6 +113,25 @@ def test_replan_latency_pools_every_replan_of_a_planner():
     assert lat["fp"] == {"trials": 2, "replans": 3, "mean_ms": 20.0, "p95_ms": pytest.approx(29.0), "max_ms": 30.0}
     assert planner_policies(recs) == {"cx": {"design_speed_mps": 3.0, "scaled": False},
                                       "fp": {"design_speed_mps": 3.0, "scaled": False}}
+
+
+def test_cruise_speed_by_hand():
+    # accelerating: x crosses 10 m at t = 2 + 2 * (10 - 4) / (12 - 4) = 3.5 s and 50 m at t = 8 + 2 * 10 / 16 = 9.25 s
+    r = rec("vit_lstm", 0, 7.0)
+    r.path = {"time": [0, 2, 4, 6, 8, 10], "position": [[x, 0, 2] for x in (0, 4, 12, 24, 40, 56)]}
+    assert cruise_speed_mps(r) == pytest.approx(40 / 5.75)
+    stalled = rec("fp", 1, 7.0)
+    stalled.path = {"time": [0, 5, 40], "position": [[0, 0, 2], [20, 0, 2], [30, 0, 2]]}
+    assert np.isnan(cruise_speed_mps(stalled))
+    assert cruise_speeds([r, stalled, rec("vit_lstm", 1, 7.0, forward_mps=6.0)]) == {
+        ("vit_lstm", 7.0): pytest.approx((40 / 5.75 + 6.0) / 2)}  # the stalled trial has no cruise
+    # the target on cruise speeds: ViT+LSTM's whole-trial means (0.8 x desired) miss it, its cruise meets it
+    rows = [{"policy": "vit_lstm", "speed": s, "forward_speed_mean": 0.8 * s, "speed_ratio_mean": 0.8} for s in (1, 7)]
+    cruise = {("vit_lstm", 1.0): 0.98, ("vit_lstm", 7.0): 6.6}
+    assert velocity_matching(rows, {})[0].met is False
+    target = velocity_matching(rows, {}, cruise=cruise)[0]
+    assert target.met is True and target.ratio == pytest.approx((0.98, 6.6 / 7)) and "cruise" in target.target
+    assert velocity_matching(rows, {}, cruise={("vit_lstm", 1.0): 0.98})[0].met is False  # no cruise at 7 m/s
 
 
 def test_figure_draws_collision_rate_speed_against_desired_and_latency(tmp_path):

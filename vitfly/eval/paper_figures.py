@@ -122,11 +122,13 @@ def modular_baselines_figure(rows: Sequence[dict], recs: Sequence[TrialRecord], 
 
 def draw_modular_baselines(rows: Sequence[dict], recs: Sequence[TrialRecord], title: str = "") -> Figure:
     """The paper's comparison with modular baselines, three panels: collision rate (trials with a collision, %) vs
-    desired speed; mean actual forward speed vs desired speed (m/s), with the y = x line a policy that flies the
-    speed asked of it follows; each planner's replan compute time (mean and 95th percentile, ms) against the
+    desired speed; actual forward speed vs desired speed (m/s): the cruise speed between x = 10 and 50 m
+    (``modular_baselines.cruise_speeds``), with the y = x line a policy that flies the speed asked of it follows;
+    each planner's replan compute time (mean and 95th percentile, ms) against the
     control tick and the replan period. ``rows``: summary rows of one env; ``recs``: its trial records."""
-    from vitfly.eval.modular_baselines import replan_latency
+    from vitfly.eval.modular_baselines import CRUISE_WINDOW_M, cruise_speeds, replan_latency
 
+    cruise = cruise_speeds(recs)
     policies = sorted({r["policy"] for r in rows})
     colours = policy_colours(policies)
     fig = Figure(figsize=(13.5, 4.2), layout="constrained")
@@ -137,13 +139,14 @@ def draw_modular_baselines(rows: Sequence[dict], recs: Sequence[TrialRecord], ti
         x = np.array([r["speed"] for r in sel], float)
         ax_col.plot(x, [100.0 * (1.0 - r["success_paper_rate"]) for r in sel], marker="o", color=colours[p],
                     label=p, lw=1.5, ms=4)
-        fwd = np.array([r["forward_speed_mean"] for r in sel], float)
+        fwd = np.array([cruise.get((p, float(r["speed"])), np.nan) for r in sel], float)
         ax_speed.plot(x, fwd, marker="o", color=colours[p], lw=1.5, ms=4)
         top = max(top, float(np.nanmax(x)) if len(x) else 0.0, float(np.nanmax(fwd)) if np.isfinite(fwd).any() else 0)
     ax_speed.plot([0, top + 0.5], [0, top + 0.5], ls="--", color="0.5", lw=1, label="y = x (desired speed)")
     ax_col.set(xlabel="desired speed (m/s)", ylabel="collision rate (%)\n(trials with a collision)", ylim=(-5, 105),
                title="collisions")
-    ax_speed.set(xlabel="desired speed (m/s)", ylabel="actual forward speed (m/s)", xlim=(0, top + 0.5),
+    window = f"x {CRUISE_WINDOW_M[0]:g}-{CRUISE_WINDOW_M[1]:g} m"
+    ax_speed.set(xlabel="desired speed (m/s)", ylabel=f"actual forward speed (m/s), {window}", xlim=(0, top + 0.5),
                  ylim=(0, top + 0.5), title="actual vs desired forward speed")
     ax_speed.legend(loc="upper left", fontsize=8)
     latency = replan_latency(recs)

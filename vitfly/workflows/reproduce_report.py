@@ -201,11 +201,12 @@ def _modular_numbers(rows: dict, recs: dict) -> dict:
     """The modular comparison's velocity-matching target and replan times, for results.json ({} if not flown)."""
     if not recs.get("modular"):
         return {}
-    from vitfly.eval.modular_baselines import planner_policies, replan_latency, velocity_matching
+    from vitfly.eval.modular_baselines import cruise_speeds, planner_policies, replan_latency, velocity_matching
 
-    return {"velocity_matching": [t.to_dict() for t in velocity_matching(rows["modular"],
-                                                                         planner_policies(recs["modular"]))],
-            "replan_latency": replan_latency(recs["modular"])}
+    modular = recs["modular"]
+    targets = velocity_matching(rows["modular"], planner_policies(modular), cruise=cruise_speeds(modular))
+    return {"velocity_matching": [t.to_dict() for t in targets],
+            "replan_latency": replan_latency(modular)}
 
 
 def paired_markdown(paired: list, recs: dict[str, list | None]) -> str:
