@@ -21,6 +21,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.optimize import linprog
 
+from vitfly.planners.bounds import box_excess_m
 from vitfly.planners.mapping import LocalMap
 from vitfly.planners.trajectory import Plan, limit_feasibility
 
@@ -82,12 +83,6 @@ def carve_free_polytope(obstacles_m: np.ndarray, a: np.ndarray, b: np.ndarray, m
     return np.array(normals).reshape(-1, 3), np.array(offsets)
 
 
-def _box_excess_m(point_m: np.ndarray, s: ConvexSettings) -> float:
-    """How far (m) a point lies outside the course's box (0 inside): the largest of its overshoots."""
-    y, z = float(point_m[1]), float(point_m[2])
-    return max(0.0, s.z_min_m - z, z - s.z_max_m, abs(y) - s.y_abs_max_m)
-
-
 def convex_plan(local_map: LocalMap, position_m, velocity_mps, goal_direction, s: ConvexSettings) -> Plan | None:
     """A straight plan toward the LP's target inside the carved region; None when no seed direction is free."""
     p0 = np.asarray(position_m, dtype=np.float64)
@@ -96,7 +91,7 @@ def convex_plan(local_map: LocalMap, position_m, velocity_mps, goal_direction, s
     along = np.linspace(0.0, 1.0, 17)[:, None]
     # the escape rule: where the start already breaks a limit, the start is the limit (see the module doc)
     margin_m = min(s.margin_m, float(local_map.distance_m(p0, upper_bound_m=s.margin_m)))
-    start_excess_m = _box_excess_m(p0, s)
+    start_excess_m = float(box_excess_m(p0[1], p0[2], s))
     directions = seed_directions(goal, s.seed_yaw_deg, s.seed_pitch_deg)
     if margin_m < s.margin_m:  # inside the margin, the way out may lie behind: the whole circle after the fan
         directions = np.concatenate([directions, seed_directions(goal, ESCAPE_YAW_DEG, s.seed_pitch_deg)])
@@ -105,7 +100,7 @@ def convex_plan(local_map: LocalMap, position_m, velocity_mps, goal_direction, s
         end = p0 + s.seed_length_m * d
         segment = p0 + along[1:] * (end - p0)
         if (local_map.distance_m(segment, upper_bound_m=s.margin_m).min() >= margin_m
-                and _box_excess_m(end, s) <= start_excess_m + 1e-9):
+                and box_excess_m(end[1], end[2], s) <= start_excess_m + 1e-9):
             seed_end = end
             break
     if seed_end is None:

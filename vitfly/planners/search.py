@@ -19,6 +19,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from vitfly.planners.bounds import box_excess_m
 from vitfly.planners.mapping import LocalMap
 from vitfly.planners.trajectory import Plan, limit_feasibility, smooth_through_waypoints
 
@@ -53,12 +54,6 @@ def acceleration_primitives(accel_max_mps2: float, steps: int) -> np.ndarray:
     return grid[np.linalg.norm(grid, axis=1) <= accel_max_mps2 * (1 + 1e-9)]
 
 
-def _box_excess_m(y_m, z_m, s: SearchSettings):
-    """How far (m) a point lies outside the course's box (0 inside): the largest of its overshoots."""
-    return np.maximum.reduce([np.zeros_like(np.asarray(y_m, dtype=np.float64)), s.z_min_m - z_m, z_m - s.z_max_m,
-                              np.abs(y_m) - s.y_abs_max_m])
-
-
 def kinodynamic_search(local_map: LocalMap, position_m, velocity_mps, goal_direction, s: SearchSettings) -> Plan | None:
     """The cheapest collision-free sequence of ``s.levels`` primitives from (position, velocity), world frame,
     smoothed and limited; None when every first primitive collides."""
@@ -72,7 +67,7 @@ def kinodynamic_search(local_map: LocalMap, position_m, velocity_mps, goal_direc
     cost = np.zeros(1)
     # the escape rule: where the start already breaks a limit, the start is the limit (see the module doc)
     margin_m = min(s.margin_m, float(local_map.distance_m(p, upper_bound_m=s.margin_m)[0]))
-    start_excess_m = _box_excess_m(p[0, 1], p[0, 2], s)
+    start_excess_m = box_excess_m(p[0, 1], p[0, 2], s)
     history: list[np.ndarray] = [p]  # end positions per level, rows follow the surviving nodes
     velocities: list[np.ndarray] = [v]
     for _ in range(s.levels):
@@ -86,7 +81,7 @@ def kinodynamic_search(local_map: LocalMap, position_m, velocity_mps, goal_direc
             # over the design speed only while slowing down (the drone may start faster than it)
             & ((np.linalg.norm(v_end, axis=2) <= s.speed_mps * 1.05)
                | (np.linalg.norm(v_end, axis=2) < np.linalg.norm(v, axis=1)[:, None]))
-            & np.all(_box_excess_m(y, z, s) <= start_excess_m + 1e-9, axis=2)
+            & np.all(box_excess_m(y, z, s) <= start_excess_m + 1e-9, axis=2)
         )
         if not ok.any():
             break
