@@ -53,11 +53,19 @@ def mirror_items(batch: dict[str, torch.Tensor], flip: torch.Tensor) -> dict[str
     return out
 
 
-def mirror_coins(traj_index: torch.Tensor, start: torch.Tensor, prob: float, seed: int, epoch: int) -> torch.Tensor:
-    """(B,) bool: mirror item b with probability ``prob``, a fixed draw per (seed, epoch, trajectory, start)."""
-    draws = [np.random.default_rng([int(seed), int(epoch), int(m), int(s)]).random()
+def item_coins(traj_index: torch.Tensor, start: torch.Tensor, prob: float, seed: int, epoch: int,
+               salt: tuple[int, ...] = ()) -> torch.Tensor:
+    """(B,) bool: True for item b with probability ``prob``, a fixed draw per (seed, epoch, trajectory, start,
+    *salt), so reruns, resumes and worker counts agree; a different ``salt`` keeps another augmentation's draws
+    apart. An item without a trajectory (index < 0) is never chosen."""
+    draws = [np.random.default_rng([int(seed), int(epoch), int(m), int(s), *salt]).random() if m >= 0 else 1.0
              for m, s in zip(traj_index.tolist(), start.tolist(), strict=True)]
     return torch.tensor(draws) < prob
+
+
+def mirror_coins(traj_index: torch.Tensor, start: torch.Tensor, prob: float, seed: int, epoch: int) -> torch.Tensor:
+    """(B,) bool: mirror item b with probability ``prob`` (``item_coins`` without a salt)."""
+    return item_coins(traj_index, start, prob, seed, epoch)
 
 
 def random_mirror(batch: dict[str, torch.Tensor], prob: float, seed: int, epoch: int) -> dict[str, torch.Tensor]:

@@ -30,6 +30,7 @@ from typing import Any
 import numpy as np
 import torch
 
+from vitfly.datamodules.augment import item_coins
 from vitfly.errors import VitflyError
 from vitfly.sensors.stereo import ImageGeometry, StereoDepthConfig, StereoDepthSensor, sensor_from_dict
 
@@ -51,10 +52,8 @@ def check_sensor(values: Mapping[str, Any] | None, prob: float) -> StereoDepthCo
 
 
 def sensor_coins(traj_index: torch.Tensor, start: torch.Tensor, prob: float, seed: int, epoch: int) -> torch.Tensor:
-    """(B,) bool: model item b's frames with probability ``prob``, one draw per (seed, epoch, trajectory, start)."""
-    draws = [np.random.default_rng([int(seed), int(epoch), int(m), int(s), _COIN_SALT]).random() if m >= 0 else 1.0
-             for m, s in zip(traj_index.tolist(), start.tolist(), strict=True)]
-    return torch.tensor(draws) < prob
+    """(B,) bool: model item b's frames with probability ``prob`` (``item_coins`` with this module's salt)."""
+    return item_coins(traj_index, start, prob, seed, epoch, salt=(_COIN_SALT,))
 
 
 def item_seed(seed: int, epoch: int, traj_index: int) -> int:
