@@ -35,6 +35,7 @@ import numpy as np
 from vitfly.errors import VitflyError
 from vitfly.eval.paired import claim_side, scene_bootstrap_interval
 from vitfly.eval.records import TrialRecord
+from vitfly.sim.collision import signed_distances
 from vitfly.sim.scenes import Scene, make_scene
 
 THRESHOLD_FRACTION = 0.1  # of the desired speed
@@ -61,18 +62,16 @@ def obstacle_x_extent(kind: str, shape: np.ndarray) -> tuple[float, float]:
 
 
 def distance_to_surface_m(position_m: np.ndarray, kind: str, shape: np.ndarray) -> np.ndarray:
-    """(T,) Euclidean distance (m) from each world-frame position (T, 3) to the obstacle's solid, 0 inside."""
+    """(T,) Euclidean distance (m) from each world-frame position (T, 3) to the obstacle's solid, 0 inside (the
+    simulator's own geometry, ``vitfly.sim.collision.signed_distances``)."""
+    if kind not in ("cylinder", "box"):
+        raise VitflyError(f"obstacle kind {kind!r}: expected cylinder or box")
+    empty = np.zeros((0, 4))
+    scene = Scene(env="course", preset="easy", seed=0, spheres=empty,
+                  cylinders=shape if kind == "cylinder" else np.zeros((0, 5)),
+                  boxes=shape if kind == "box" else np.zeros((0, 6)))
     p = np.asarray(position_m, dtype=np.float64).reshape(-1, 3)
-    if kind == "cylinder":
-        x, y, z0, z1, r = shape
-        radial = np.maximum(np.hypot(p[:, 0] - x, p[:, 1] - y) - r, 0.0)
-        vertical = np.maximum(np.maximum(z0 - p[:, 2], p[:, 2] - z1), 0.0)
-        return np.hypot(radial, vertical)
-    if kind == "box":
-        lo, hi = np.asarray(shape[:3]), np.asarray(shape[3:])
-        excess = np.maximum(np.maximum(lo - p, p - hi), 0.0)
-        return np.linalg.norm(excess, axis=1)
-    raise VitflyError(f"obstacle kind {kind!r}: expected cylinder or box")
+    return np.maximum(np.array([signed_distances(q, scene)[0] for q in p]), 0.0)
 
 
 @dataclass(frozen=True)
