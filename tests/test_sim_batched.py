@@ -5,15 +5,16 @@ Every comparison runs in float64 on the CPU, eagerly; the worst gaps measured ar
 """
 
 import dataclasses
+import shutil
 
 import numpy as np
 import pytest
 import torch
 
-from vitfly.sim.batched.camera import BatchedCamera
+from vitfly.sim.batched.camera import BatchedCamera, pixel_rays
 from vitfly.sim.batched.controller import velocity_control
 from vitfly.sim.batched.dynamics import hover_state, physics_step, quat_to_rotation
-from vitfly.sim.batched.expert import expert_commands
+from vitfly.sim.batched.expert import expert_commands, visible_cover
 from vitfly.sim.batched.rollout import BatchedSettings, run_batched
 from vitfly.sim.batched.scenes import scene_batch
 from vitfly.sim.camera import CAMERA_PRESETS, CameraConfig, DepthCamera
@@ -60,6 +61,16 @@ def test_depth_equals_the_numpy_camera_on_every_family_and_preset(env, preset):
     image = BatchedCamera(cfg).render(scene_batch(scenes), torch.tensor(pos), torch.tensor(rot)).numpy()
     numpy_image = np.stack([DepthCamera(cfg).render(s, p, r) for s, p, r in zip(scenes, pos, rot, strict=True)])
     assert np.abs(image - numpy_image).max() <= TOL_M / cfg.max_range_m + 1e-7  # + float32 rounding
+
+
+@pytest.mark.parametrize("preset", list(CAMERA_PRESETS))
+def test_pair_kernels_compute_the_numpy_cameras_rays_bit_for_bit(preset):
+    # the pair kernels compute each pixel's ray instead of gathering it: the same float64 values
+    ref = DepthCamera(CameraConfig.from_preset(preset))
+    h, w = ref.config.height, ref.config.width
+    row, col = torch.meshgrid(torch.arange(h), torch.arange(w), indexing="ij")
+    u, v = pixel_rays(row, col, ref._tan_h, ref._tan_v, h, w, F64)
+    assert np.array_equal(u.numpy(), ref._u) and np.array_equal(v.numpy(), ref._v)
 
 
 def test_other_geometries_ground_off_and_rendering_a_subset():
@@ -117,6 +128,18 @@ def test_expert_fallback_and_ties_by_hand():
                           scene_batch([sphere, wall]), ALL_SEEING).numpy()
     np.testing.assert_allclose(cmd[0], [4.5808, 0.0, 2.0041], atol=1e-4)
     np.testing.assert_allclose(cmd[1], [2.5, 0.0, 2.0])  # inside: fallback, then altitude floor and ramp
+
+
+def test_expert_sees_the_ten_nearest_ties_in_scene_order():
+    # twelve spheres 5 m from the drone along the axes (exactly tied distances) and one nearer, last: the
+    # nearer one and the first nine of the twelve in scene order, as a stable sort by distance keeps them
+    near = np.array([[12.0, 0.0, 3.5, 0.5]])
+    ring = np.array([[10.0 + dx, dy, 3.5, 0.5] for dx, dy in
+                     [(5, 0), (0, 5), (-5, 0), (0, -5), (5, 0), (0, 5), (-5, 0), (0, -5), (5, 0), (0, 5),
+                      (-5, 0), (0, -5)]])
+    scene = Scene("spheres", "test", 0, np.concatenate([ring, near]), np.zeros((0, 5)), np.zeros((0, 6)))
+    seen = visible_cover(torch.tensor([[10.0, 0.0, 3.5]]), scene_batch([scene]), ExpertConfig())[0].numpy()
+    assert seen.tolist() == [True] * 9 + [False] * 3 + [True]
 
 
 @pytest.mark.parametrize("vectorised", [False, True], ids=["scalar_kernel", "array_kernel"])
@@ -183,6 +206,19 @@ def test_short_episodes_equal_the_numpy_engine(env, policy):
     assert_same_episodes(ref, got, {})
     if policy is StraightPolicy or env == "spheres":  # collisions happen (and are counted alike)
         assert sum(r.summary.n_collisions for r in got) >= 1
+
+
+@pytest.mark.slow
+@pytest.mark.skipif(shutil.which("c++") is None and shutil.which("g++") is None,
+                    reason="torch.compile on the CPU needs a C++ compiler")
+def test_compiled_engine_equals_the_numpy_engine():
+    # the fast path the benchmarks time: every kernel through torch.compile (inductor), still float64
+    scenes, start = short_scenes("spheres")
+    cfg = dataclasses.replace(short_config(timeout_s=2.5, start=start), record_depth=True)
+    ref = run_episodes(scenes, [7.0, 5.0, 3.0], ExpertPolicy(), cfg)
+    got = run_batched(scenes, [7.0, 5.0, 3.0], ExpertPolicy(), cfg, settings=BatchedSettings(compile=True))
+    assert_same_episodes(ref, got, {})
+    assert sum(r.summary.n_collisions for r in got) >= 1
 
 
 def test_contact_goal_bounds_and_body_radius_equal_the_numpy_engine():

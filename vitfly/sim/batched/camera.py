@@ -57,7 +57,10 @@ def sphere_windows(cam, radius, mask, max_range_m: float, frustum, tan_h: float,
     front; a sphere reaching behind the image plane may cover the whole image (the numpy camera's bounds).
     """
     cx, cy, cz = cam.unbind(-1)
-    keep = mask & (cx - radius < max_range_m) & ((cam @ frustum.T) > -radius[..., None]).all(-1)
+    keep = mask & (cx - radius < max_range_m)
+    # plane by plane, not a (K, 4) product: elementwise, it compiles to one vectorised loop
+    for i in range(frustum.shape[0]):
+        keep = keep & (cx * frustum[i, 0] + cy * frustum[i, 1] + cz * frustum[i, 2] > -radius)
     r2 = radius * radius
     front = cx > radius
     k = torch.where(front, cx * cx - r2, torch.ones_like(cx))
@@ -78,38 +81,46 @@ def window_pairs(r0, r1, c0, c1) -> tuple[torch.Tensor, torch.Tensor, torch.Tens
     """
     cols = (c1 - c0).clamp(min=0)
     count = (r1 - r0).clamp(min=0) * cols
-    total = int(count.sum())
-    shape = torch.repeat_interleave(torch.arange(len(count), device=count.device), count, output_size=total)
+    shape = torch.repeat_interleave(count, output_size=int(count.sum()))
     return shape, torch.cumsum(count, 0) - count, cols.clamp(min=1)
 
 
-def pair_pixels(shape, start, r0, c0, cols, width: int) -> torch.Tensor:
-    """Flat pixel index (row * width + column) of each pair of :func:`window_pairs`."""
+def pair_pixels(shape, start, r0, c0, cols) -> tuple[torch.Tensor, torch.Tensor]:
+    """Image row and column of each pair of :func:`window_pairs`."""
     offset = torch.arange(shape.shape[0], device=shape.device) - start[shape]
     n = cols[shape]
     # offset // n in float64 (exact for these small integers, and much cheaper than integer division)
     row = torch.floor((offset.double() + 0.5) / n.double()).long()
-    return (r0[shape] + row) * width + c0[shape] + offset - row * n
+    return r0[shape] + row, c0[shape] + offset - row * n
 
 
-def _world_ray(rot, pix, u, v, i: int) -> torch.Tensor:
-    """Component i of pixel ``pix``'s world-frame ray R (1, u, v), rot (P, 3, 3) (as the numpy camera sums it)."""
-    return rot[:, i, 0] + rot[:, i, 1] * u[pix] + rot[:, i, 2] * v[pix]
+def pixel_rays(row, col, tan_h: float, tan_v: float, height: int, width: int, dtype: torch.dtype):
+    """Body-frame ray (1, u, v) of pixel (row, col), u left and v up: the numpy camera's formula, op for op
+    (so the same values in float64); computed, not gathered, which is cheaper per pair."""
+    u = tan_h * (1.0 - 2.0 * (col.to(dtype) + 0.5) / width)
+    v = tan_v * (1.0 - 2.0 * (row.to(dtype) + 0.5) / height)
+    return u, v
 
 
-def sphere_pair_depth(pairs, env, cam, r2, u, v, a, width: int):
+def _world_ray(rot, u, v, i: int) -> torch.Tensor:
+    """Component i of the world-frame ray R (1, u, v), rot (P, 3, 3) (as the numpy camera sums it)."""
+    return rot[:, i, 0] + rot[:, i, 1] * u + rot[:, i, 2] * v
+
+
+def sphere_pair_depth(pairs, env, cam, r2, tan_h: float, tan_v: float, height: int, width: int):
     """(flat index into the (E H W) buffer, planar depth in m) of every (sphere, pixel) pair; +inf where the
     ray misses (or hits behind).
 
     pairs: (shape, start, r0, c0, cols) of :func:`window_pairs` and the windows; env (K,) each sphere's
     scene; cam (K, 3) sphere centres in the camera frame (x forward, y left, z up); r2 (K,) squared
-    radii; u, v, a (H W,) the pixel rays (1, u, v) and their squared lengths. Outside a sphere the near
-    intersection, inside it the far side (the exit point), as the numpy camera.
+    radii; the camera's tangents and size give the pixel rays (:func:`pixel_rays`). Outside a sphere the
+    near intersection, inside it the far side (the exit point), as the numpy camera.
     """
     shape = pairs[0]
-    pix = pair_pixels(*pairs, width)
+    row, col = pair_pixels(*pairs)
+    uu, vv = pixel_rays(row, col, tan_h, tan_v, height, width, cam.dtype)
+    aa = 1.0 + uu * uu + vv * vv  # squared ray length
     cx, cy, cz = cam[shape].unbind(-1)
-    uu, vv, aa = u[pix], v[pix], a[pix]
     b = cx + cy * uu + cz * vv  # ray . centre
     c_sphere = (cam * cam).sum(-1) - r2  # > 0 when the camera is outside the sphere
     c = c_sphere[shape]
@@ -117,18 +128,19 @@ def sphere_pair_depth(pairs, env, cam, r2, u, v, a, width: int):
     hit = disc >= 0
     root = torch.sqrt(_where_safe(disc > 0, disc)) * (disc > 0)
     t = (b - torch.where(c > 0, root, -root)) / aa
-    return env[shape] * u.shape[0] + pix, torch.where(hit & (t > 0), t, torch.inf)
+    return (env[shape] * height + row) * width + col, torch.where(hit & (t > 0), t, torch.inf)
 
 
-def cylinder_pair_depth(pairs, env, cyl, origin, rot, u, v, width: int):
+def cylinder_pair_depth(pairs, env, cyl, origin, rot, tan_h: float, tan_v: float, height: int, width: int):
     """(flat index, planar depth in m) of every (vertical cylinder, pixel) pair (side wall and caps), +inf
     for none. cyl (K, 5) [x, y, z_bottom, z_top, radius]; origin (K, 3) the camera centre and rot (K, 3, 3)
     the body-to-world rotation of each cylinder's scene. Solved in the world frame, as the numpy camera.
     """
     shape = pairs[0]
-    pix = pair_pixels(*pairs, width)
+    row, col = pair_pixels(*pairs)
+    u, v = pixel_rays(row, col, tan_h, tan_v, height, width, cyl.dtype)
     r_pair = rot[shape]
-    dx, dy, dz = (_world_ray(r_pair, pix, u, v, i) for i in range(3))
+    dx, dy, dz = (_world_ray(r_pair, u, v, i) for i in range(3))
     px, py, pz = origin[shape].unbind(-1)
     ox, oy = px - cyl[shape, 0], py - cyl[shape, 1]
     z0, z1, r = cyl[shape, 2], cyl[shape, 3], cyl[shape, 4]
@@ -146,19 +158,20 @@ def cylinder_pair_depth(pairs, env, cyl, origin, rot, u, v, width: int):
         tc = (zc - pz) / _where_safe(up, dz)
         qx, qy = ox + tc * dx, oy + tc * dy
         best = torch.where(up & (tc > 0) & (qx * qx + qy * qy <= r2) & (tc < best), tc, best)
-    return env[shape] * u.shape[0] + pix, best
+    return (env[shape] * height + row) * width + col, best
 
 
-def box_pair_depth(pairs, env, boxes, origin, rot, u, v, width: int):
+def box_pair_depth(pairs, env, boxes, origin, rot, tan_h: float, tan_v: float, height: int, width: int):
     """(flat index, planar depth in m) of every (axis-aligned box, pixel) pair (slab method), +inf for none;
     inside a box, its far side. boxes (K, 6) [min xyz, max xyz]; origin, rot as :func:`cylinder_pair_depth`."""
     shape = pairs[0]
-    pix = pair_pixels(*pairs, width)
+    row, col = pair_pixels(*pairs)
+    u, v = pixel_rays(row, col, tan_h, tan_v, height, width, boxes.dtype)
     r_pair = rot[shape]
     lo, hi, o = boxes[shape, :3], boxes[shape, 3:], origin[shape]
     t_near = t_far = None
     for i in range(3):
-        d = _world_ray(r_pair, pix, u, v, i)
+        d = _world_ray(r_pair, u, v, i)
         moving = d != 0
         d_safe = _where_safe(moving, d)
         t0, t1 = (lo[:, i] - o[:, i]) / d_safe, (hi[:, i] - o[:, i]) / d_safe
@@ -171,7 +184,7 @@ def box_pair_depth(pairs, env, boxes, origin, rot, u, v, width: int):
         t_near = near if t_near is None else torch.maximum(t_near, near)
         t_far = far if t_far is None else torch.minimum(t_far, far)
     t = torch.where(t_near > 0, t_near, t_far)
-    return env[shape] * u.shape[0] + pix, torch.where((t_near > t_far) | (t_far <= 0), torch.inf, t)
+    return (env[shape] * height + row) * width + col, torch.where((t_near > t_far) | (t_far <= 0), torch.inf, t)
 
 
 def ground_depth(origin, rotation, u, v, envs) -> torch.Tensor:
@@ -197,7 +210,7 @@ class BatchedCamera:
         self.tan_h, self.tan_v = ref._tan_h, ref._tan_v
         self.u = torch.as_tensor(ref._u_flat, **like)
         self.v = torch.as_tensor(ref._v_flat, **like)
-        self.a = torch.as_tensor(ref._a_flat, **like)
+        self._image = (ref._tan_h, ref._tan_v, cfg.height, cfg.width)  # what the pair kernels need of the rays
         self.mount = torch.as_tensor(np.asarray(cfg.mount_offset_m, dtype=np.float64), **like)
         self.frustum = torch.as_tensor(ref._frustum, **like)  # (4, 3) inward unit normals, body frame
         self.reach = ref._reach
@@ -241,8 +254,10 @@ class BatchedCamera:
             buffer = self._ground_kernel(origin, rotation, self.u, self.v, envs).reshape(-1)
         else:
             buffer = torch.full((e * size,), torch.inf, dtype=position.dtype, device=position.device)
-        if flats:
-            buffer = buffer.scatter_reduce(0, torch.cat(flats), torch.cat(depths), "amin", include_self=True)
+        if flats:  # (one kind of shape: no copy)
+            flat = flats[0] if len(flats) == 1 else torch.cat(flats)
+            depth = depths[0] if len(depths) == 1 else torch.cat(depths)
+            buffer = buffer.scatter_reduce(0, flat, depth, "amin", include_self=True)
         depth = buffer.view(e, size)
         return depth.view(e, cfg.height, cfg.width)
 
@@ -299,7 +314,7 @@ class BatchedCamera:
                 return None
             pairs = self._pairs((r0[env, k], r1[env, k], c0[env, k], c1[env, k]))
         r = sph[env, k, 3]
-        return self._spheres_kernel(pairs, env, cam[env, k], r * r, self.u, self.v, self.a, cfg.width)
+        return self._spheres_kernel(pairs, env, cam[env, k], r * r, *self._image)
 
     def _corner_windows(self, corners_cam: torch.Tensor):
         """Pixel windows of the convex hulls of (K, 8, 3) camera-frame corners (whole image if one is behind)."""
@@ -327,8 +342,7 @@ class BatchedCamera:
             if len(env) == 0:
                 return None
             pairs = self._pairs(self._corner_windows(cam[env, k]))
-        return self._cylinders_kernel(pairs, env, cyl[env, k], origin[env], rotation[env], self.u, self.v,
-                                      self.config.width)
+        return self._cylinders_kernel(pairs, env, cyl[env, k], origin[env], rotation[env], *self._image)
 
     def _cast_boxes(self, batch, origin, rotation, envs):
         if batch.boxes.shape[1] == 0:
@@ -347,5 +361,4 @@ class BatchedCamera:
             corners = lo[:, None, :] + self._box_corners * (hi - lo)[:, None, :] - o[env]
             cam = torch.einsum("knj,kji->kni", corners, rotation.detach()[env])
             pairs = self._pairs(self._corner_windows(cam))
-        return self._boxes_kernel(pairs, env, boxes[env, k], origin[env], rotation[env], self.u, self.v,
-                                  self.config.width)
+        return self._boxes_kernel(pairs, env, boxes[env, k], origin[env], rotation[env], *self._image)

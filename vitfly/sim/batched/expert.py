@@ -48,10 +48,12 @@ def visible_cover(position: torch.Tensor, batch: SceneBatch, config: ExpertConfi
     if rng is not None:
         chosen = chosen & (dist2 <= rng * rng)
     if n_max is not None and chosen.shape[1] > n_max:
-        # stable sort by distance among the chosen (the others last): the first n_max chosen win
-        order = torch.sort(torch.where(chosen, dist2, torch.inf), dim=1, stable=True).indices[:, :n_max]
-        top = torch.zeros_like(chosen).scatter_(1, order, True)
-        chosen = chosen & top
+        # the n_max nearest chosen, ties at the cut in scene order (what a stable sort would keep),
+        # from the n_max-th smallest distance: no full sort
+        dist2 = torch.where(chosen, dist2, torch.inf)
+        cut = torch.topk(dist2, n_max, dim=1, largest=False, sorted=False).values.amax(1, keepdim=True)
+        below, tie = chosen & (dist2 < cut), chosen & (dist2 == cut)
+        chosen = below | (tie & (torch.cumsum(tie, 1) <= n_max - below.sum(1, keepdim=True)))
     return torch.gather(chosen, 1, batch.cover_object) & batch.cover_mask
 
 
@@ -111,22 +113,31 @@ def first_free(rel: torch.Tensor, radius2: torch.Tensor, config: ExpertConfig,
     return index, found
 
 
+def obstacles_ahead(position: torch.Tensor, batch: SceneBatch, config: ExpertConfig):
+    """``(keep (E, Kv) bool, rel (E, Kv, 3) m, radii (E, Kv) m)``: the visible covering spheres that may block
+    a waypoint line (0 < dx < lookahead, near the lines' double pyramid), their centres relative to the
+    drone at ``position`` (E, 3) m and their inflated radii."""
+    visible = visible_cover(position, batch, config)
+    rel = batch.cover[..., :3] - position[:, None, :]
+    radii = batch.cover[..., 3] + config.inflate_m
+    # lines lie in the double pyramid |y|, |z| <= slope x: spheres farther than their inflated radius
+    # from its side planes block none of them (the numpy expert's shortcut, same answer)
+    slope = config.grid_half_extent_m / config.lookahead_m
+    margin = radii * (1.0 + slope * slope) ** 0.5
+    dx = rel[..., 0]
+    near_cone = (rel[..., 1].abs() - slope * dx < margin) & (rel[..., 2].abs() - slope * dx < margin)
+    return visible & (dx > 0.0) & (dx < config.lookahead_m) & near_cone, rel, radii
+
+
 def expert_commands(position: torch.Tensor, desired_speed: torch.Tensor, batch: SceneBatch,
-                    config: ExpertConfig | None = None, blocked: Callable = blocked_lines) -> torch.Tensor:
+                    config: ExpertConfig | None = None, blocked: Callable = blocked_lines,
+                    ahead: Callable = obstacles_ahead) -> torch.Tensor:
     """World-frame velocity commands (E, 3) m/s for drones at ``position`` (E, 3) m flying at
-    ``desired_speed`` (E,) m/s (see the module docstring)."""
+    ``desired_speed`` (E,) m/s (see the module docstring). ``blocked`` and ``ahead`` stand in for
+    :func:`blocked_lines` and :func:`obstacles_ahead` (their compiled twins, say)."""
     cfg = config or ExpertConfig()
     with torch.no_grad():
-        visible = visible_cover(position, batch, cfg)
-        rel = batch.cover[..., :3] - position[:, None, :]
-        radii = batch.cover[..., 3] + cfg.inflate_m
-        # lines lie in the double pyramid |y|, |z| <= slope x: spheres farther than their inflated radius
-        # from its side planes block none of them (the numpy expert's shortcut, same answer)
-        slope = cfg.grid_half_extent_m / cfg.lookahead_m
-        margin = radii * (1.0 + slope * slope) ** 0.5
-        dx = rel[..., 0]
-        near_cone = (rel[..., 1].abs() - slope * dx < margin) & (rel[..., 2].abs() - slope * dx < margin)
-        keep = visible & (dx > 0.0) & (dx < cfg.lookahead_m) & near_cone
+        keep, rel, radii = ahead(position, batch, cfg)
         keep, rel, radii = _compact(keep, rel, radii[..., None])
         radius2 = torch.where(keep, radii[..., 0] * radii[..., 0], -torch.ones_like(radii[..., 0]))
         index, found = first_free(rel, radius2, cfg, blocked)

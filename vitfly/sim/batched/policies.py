@@ -15,7 +15,7 @@ from functools import lru_cache
 import numpy as np
 import torch
 
-from vitfly.sim.batched.expert import blocked_lines, expert_commands
+from vitfly.sim.batched.expert import blocked_lines, expert_commands, obstacles_ahead
 from vitfly.sim.batched.scenes import SceneBatch
 from vitfly.sim.expert import ExpertConfig
 from vitfly.sim.policies import ExpertPolicy, StraightPolicy
@@ -48,9 +48,9 @@ class BatchedExpert:
     batched = True
     needs_depth = False
 
-    def __init__(self, config: ExpertConfig | None = None, blocked=None):
+    def __init__(self, config: ExpertConfig | None = None, blocked=None, ahead=None):
         self.config = config or ExpertConfig()
-        self._kwargs = {} if blocked is None else {"blocked": blocked}
+        self._kwargs = {name: fn for name, fn in (("blocked", blocked), ("ahead", ahead)) if fn is not None}
 
     def reset(self, num_envs: int) -> None:
         pass
@@ -116,17 +116,17 @@ class NumpyPolicy:
 
 
 @lru_cache(maxsize=1)
-def _compiled_blocked_lines():
-    return torch.compile(blocked_lines, dynamic=True)
+def _compiled_expert_kernels() -> dict:
+    return {"blocked": torch.compile(blocked_lines, dynamic=True), "ahead": torch.compile(obstacles_ahead)}
 
 
 def as_batched_policy(policy, compile: bool = False):
     """``policy`` for the batched engine: batched policies as they are, the numpy expert and straight
     flight as their batched twins (same commands), a policy's own ``batched_twin()`` where it gives one
     (e.g. ``vitfly.eval.learned_policy.LearnedPolicy``), any other policy through :class:`NumpyPolicy`.
-    ``compile``: the expert's line test through ``torch.compile`` (its hot kernel)."""
+    ``compile``: the expert's line test and obstacle selection through ``torch.compile``."""
     if compile and type(policy) in (ExpertPolicy, BatchedExpert):
-        return BatchedExpert(policy.config, blocked=_compiled_blocked_lines())
+        return BatchedExpert(policy.config, **_compiled_expert_kernels())
     if getattr(policy, "batched", False):
         return policy
     twin = getattr(policy, "batched_twin", None)  # a policy's own tensor path (a learned policy's network)

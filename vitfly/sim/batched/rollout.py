@@ -109,6 +109,17 @@ def _substep(state: DroneTensors, track: Tracking, command, candidates, time_s, 
     )
 
 
+def _contact_candidates(state: DroneTensors, speed, active, batch, body_radius_m: float,
+                        control_hz: float) -> torch.Tensor:
+    """(E, K) bool: the obstacles each running drone can reach before the next tick (twice the distance at
+    the current or desired speed, plus margin); the others are left out of the per-step contact tests, as
+    in the numpy engine."""
+    v = state.velocity
+    now = torch.sqrt(v[:, 0] * v[:, 0] + v[:, 1] * v[:, 1] + v[:, 2] * v[:, 2])
+    reach = 2.0 * torch.maximum(torch.maximum(now, speed), torch.full_like(now, 5.0)) / control_hz + 0.5
+    return nearby(state.position, batch, reach, body_radius_m) & active[:, None]
+
+
 class _Log:
     """Per-tick logs of all envs on the device, grown by doubling; env i's rows are 0 .. its last tick."""
 
@@ -159,7 +170,9 @@ def run_batched(
     camera = BatchedCamera(cfg.camera, st.device, st.dtype, compile=_compiler(st, dynamic=True))
     policy = as_batched_policy(policy, compile=st.compile)
     needs_depth = bool(getattr(policy, "needs_depth", True)) or cfg.record_depth
+    # compiled one by one: one graph of all the tick's physics steps runs faster but compiles for minutes
     substep = torch.compile(_substep) if st.compile else _substep
+    contact_candidates = torch.compile(_contact_candidates) if st.compile else _contact_candidates
     noisy = cfg.camera.noise_std_m > 0.0 or cfg.camera.dropout_prob > 0.0
     rngs = [np.random.default_rng([camera_seed if camera_seed is not None else s.seed, 7]) for s in scenes]
     generator = None
@@ -198,12 +211,7 @@ def run_batched(
             log.labels = True
             row["label"][:] = labels
         bad = (~torch.isfinite(commands).all(1) & active).any()
-        # obstacles out of reach before the next tick (twice the distance at the current or desired
-        # speed, plus margin) are left out of the per-step contact tests, as in the numpy engine
-        v = state.velocity
-        now = torch.sqrt(v[:, 0] * v[:, 0] + v[:, 1] * v[:, 1] + v[:, 2] * v[:, 2])
-        reach = 2.0 * torch.maximum(torch.maximum(now, speed), torch.full_like(now, 5.0)) / cfg.control_hz + 0.5
-        candidates = nearby(state.position, batch, reach, task.body_radius_m) & active[:, None]
+        candidates = contact_candidates(state, speed, active, batch, task.body_radius_m, cfg.control_hz)
         command = torch.where(active[:, None], commands, torch.zeros_like(commands))  # finished envs hover
         track = track._replace(tick_contact=torch.zeros_like(active))
         # 3. physics steps with the cascaded controller; contact, goal and bounds of the running envs
