@@ -1,6 +1,8 @@
-"""benchmarks/sim_agreement.py's pairing and counting, on hand-made records (no flight)."""
+"""benchmarks/sim_agreement.py's pairing and counting, on hand-made records (no flight), and benchmarks/sim_scale.py
+end to end (slow)."""
 
 import importlib.util
+import json
 from pathlib import Path
 
 import pytest
@@ -41,3 +43,23 @@ def test_agreement_counts_outcomes_pair_by_pair(bench):
     assert row["success_float64"] == pytest.approx(3 / 5) and row["success_float32"] == pytest.approx(2 / 5)
     # Clopper-Pearson for 2 of 5 (from beta quantiles): 0.0527 .. 0.8534
     assert row["ci95"] == pytest.approx([0.05274, 0.85337], abs=1e-4)
+
+
+@pytest.mark.slow
+def test_sim_scale_flies_the_same_trials_with_both_engines(tmp_path, monkeypatch):
+    # benchmarks/sim_scale.py end to end, tiny and eager: in float64 both engines fly the same trials (exact
+    # engines, the same scenes) and collect the same frames
+    spec = importlib.util.spec_from_file_location("sim_scale", REPO / "benchmarks" / "sim_scale.py")
+    scale = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(scale)
+    out = tmp_path / "scale.json"
+    monkeypatch.setattr("sys.argv", ["sim_scale", "--eager", "--dtype", "float64", "--trials", "3",
+                                     "--numpy-trials", "3", "--num-envs", "3", "--flights", "2",
+                                     "--numpy-flights", "2", "--json", str(out)])
+    scale.main()
+    got = json.loads(out.read_text())
+    ev, co = got["evaluation"], got["collection"]
+    assert ev["batched"]["trials"] == ev["numpy"]["trials"] == 3
+    assert ev["batched"]["success"] == ev["numpy"]["success"]
+    assert co["batched"]["frames"] == co["numpy"]["frames"] > 0
+    assert ev["ratio"] == pytest.approx(ev["batched"]["trials_per_min"] / ev["numpy"]["trials_per_min"])
