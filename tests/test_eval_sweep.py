@@ -293,7 +293,7 @@ def test_int8_backend_flies_and_cuda_absent_is_one_line(tmp_path, capsys):
         pytest.skip("CUDA is present: the missing-CUDA error cannot be shown here")
     assert evaluate(tmp_path / "gpu", "--policy", str(ckpt), "--trials", "1", "--device", "cuda") == 2
     err = capsys.readouterr().err.strip().splitlines()
-    assert err == ["vitfly: error: --device cuda: CUDA is not available on this machine (use --device cpu)"]
+    assert err == ["vitfly: error: --device is 'cuda' but torch sees no CUDA device here; use cpu"]
     assert not (tmp_path / "gpu").exists()
 
 

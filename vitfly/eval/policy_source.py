@@ -11,6 +11,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from pathlib import Path
 
+from vitfly.devices import check_torch_device
 from vitfly.errors import VitflyError
 from vitfly.sim.camera import CameraConfig
 
@@ -132,18 +133,9 @@ def check_device(device: str, backend: str = "eager") -> None:
     """One-line VitflyError unless ``device`` ("cpu", "cuda", "cuda:N") can run ``backend`` here."""
     import torch
 
-    try:
-        dev = torch.device(device)
-    except (RuntimeError, ValueError):
-        raise VitflyError(f"--device {device}: expected cpu, cuda or cuda:N") from None
-    if dev.type not in ("cpu", "cuda"):
-        raise VitflyError(f"--device {device}: expected cpu, cuda or cuda:N")
-    if dev.type == "cpu":
+    check_torch_device(device, "--device")
+    if torch.device(device).type == "cpu":
         return
-    if not torch.cuda.is_available():
-        raise VitflyError(f"--device {device}: CUDA is not available on this machine (use --device cpu)")
-    if dev.index is not None and dev.index >= torch.cuda.device_count():
-        raise VitflyError(f"--device {device}: this machine has {torch.cuda.device_count()} CUDA device(s)")
     if backend == "onnxruntime-int8":
         raise VitflyError(f"--backend {backend} runs on the CPU; with --device {device} use --backend eager")
     if backend == "onnxruntime":

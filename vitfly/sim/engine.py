@@ -20,6 +20,7 @@ from __future__ import annotations
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
+from vitfly.devices import check_torch_device
 from vitfly.errors import VitflyError
 
 SIM_ENGINES = ("numpy", "batched")
@@ -57,7 +58,7 @@ class SimEngine:
                     raise VitflyError(f"{source}: field {name!r} is {value!r} but {sim!r} is 'numpy' (CPU, float64); "
                                       f"set {sim} batched to use it")
             return self
-        _check_device(self.device, f"{source}: field {device!r}")
+        check_torch_device(self.device, f"{source}: field {device!r}")
         return self
 
     def physics(self, name: str | None, source: str = "config: field 'physics'") -> str:
@@ -96,22 +97,6 @@ class SimEngine:
         from vitfly.sim.batched.rollout import BatchedSettings
 
         return BatchedSettings(device=self.device, dtype=getattr(torch, self.dtype), compile=self.compile)
-
-
-def _check_device(device: str, source: str) -> None:
-    import torch
-
-    try:
-        where = torch.device(device)
-    except (RuntimeError, ValueError):
-        raise VitflyError(f"{source} is {device!r}; expected cpu, cuda or cuda:N") from None
-    if where.type not in ("cpu", "cuda"):
-        raise VitflyError(f"{source} is {device!r}; expected cpu, cuda or cuda:N")
-    if where.type == "cuda":
-        if not torch.cuda.is_available():
-            raise VitflyError(f"{source} is {device!r} but torch sees no CUDA device here; use cpu")
-        if where.index is not None and where.index >= torch.cuda.device_count():
-            raise VitflyError(f"{source} is {device!r} but only {torch.cuda.device_count()} CUDA device(s) exist")
 
 
 def fly(scenes: Sequence, speeds: Sequence[float], policy, config=None,
