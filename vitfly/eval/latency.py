@@ -22,6 +22,7 @@ import numpy as np
 import torch
 from torch import nn
 
+from vitfly.devices import check_torch_device
 from vitfly.errors import VitflyError
 from vitfly.eval.config import BACKENDS  # "onnxruntime-int8": large products in int8 (vitfly.deploy.quantize)
 from vitfly.zoo import create_model
@@ -250,9 +251,8 @@ def prepare_step(
         raise VitflyError(f"--backend must be one of {', '.join(BACKENDS)}, got {backend!r}")
     if threads < 1:
         raise VitflyError(f"--threads must be at least 1, got {threads}")
+    check_torch_device(device, "--device")
     dev = torch.device(device)
-    if dev.type == "cuda" and not torch.cuda.is_available():
-        raise VitflyError("--device cuda: CUDA is not available on this machine")
     torch.manual_seed(0)
     net = (net if net is not None else create_model(name)).eval()
     params = sum(p.numel() for p in net.parameters())
