@@ -8,14 +8,15 @@ time, the batched engine on ``--device`` beside the numpy engine, in one run.
 1. Evaluation: ``vitfly evaluate``'s library call (``vitfly.eval.sweep.run_sweep``) flies ``--policy``
    (default the shipped ViT+LSTM) in spheres/medium at 3, 5 and 7 m/s, ``--trials`` trials in all, with
    ``--sim batched --sim-device DEVICE --device DEVICE`` (the policy on the engine's card, observations never
-   leave it), ``--num-envs`` scenes in lockstep, ``--dtype`` (float32 by default), compiled; then
-   ``--numpy-trials`` of the same trials with the numpy engine (the policy on the same device, 16 lockstep
+   leave it), ``--num-envs`` scenes in lockstep, ``--dtype`` (float32 by default), compiled; before it the
+   numpy engine flies the first ``--numpy-trials`` of those trials (the policy on the same device, 16 lockstep
    scenes, one process). Trials per minute of each; the batched engine's seconds include its compiles, as a
    user's first sweep in a process would (a fresh machine also fills inductor's disk cache then).
 2. Collection: ``vitfly collect``'s library call writes ``--flights`` expert trajectories (spheres/medium,
    3-7 m/s, seed 0, native physics: the ``paper`` preset's data for 588) with the batched engine, all in one
-   lockstep batch, ``--collect-dtype`` (float64 by default: the numpy engine's data), compiled; then
-   ``--numpy-flights`` with the numpy engine (one worker). Seconds, frames per second.
+   lockstep batch, ``--collect-dtype`` (float64 by default: the numpy engine's data), compiled; before it the
+   numpy engine collects ``--numpy-flights`` (one worker). Seconds, frames per second. ``--json`` is
+   written after every measurement, so a run cut short keeps what it measured.
 
 Issue 23's targets on one H100: 10,000 ViT+LSTM trials in at most 2 minutes; the 588-flight dataset in at
 most 10 s. On a CPU the policy's network dominates a learned policy's tick (see docs/performance.md).
@@ -97,34 +98,39 @@ def main() -> None:
     out: dict = {"device": args.device, "policy": args.policy,
                  "gpu": torch.cuda.get_device_name() if args.device.startswith("cuda") else None,
                  "cpu_count": os.cpu_count()}
+    def save() -> None:  # after every measurement: a run cut short by a timeout keeps what it measured
+        if args.json:
+            args.json.parent.mkdir(parents=True, exist_ok=True)
+            args.json.write_text(json.dumps(out, indent=2))
+
     with tempfile.TemporaryDirectory() as tmp:
         workdir = Path(tmp)
         if not args.skip_eval:
             print(f"1. evaluation, {args.policy}, spheres/medium at 3/5/7 m/s", flush=True)
-            rows = [evaluation(args, workdir, "batched", args.trials),
-                    evaluation(args, workdir, "numpy", args.numpy_trials)]
-            for row in rows:
-                print(f"   {row['engine']:8s} {row['trials']:6d} trials in {row['wall_s']:7.1f} s: "
+            rows = out["evaluation"] = {}
+            # the short reference first, so that a timeout in the long run leaves both numbers but one
+            for engine, trials in (("numpy", args.numpy_trials), ("batched", args.trials)):
+                row = rows[engine] = evaluation(args, workdir, engine, trials)
+                print(f"   {engine:8s} {row['trials']:6d} trials in {row['wall_s']:7.1f} s: "
                       f"{row['trials_per_min']:8.1f} trials/min (success {row['success']:.0%}; "
                       f"{row['num_envs']} in lockstep, engine on {row['sim_device']}, {row['dtype']}"
                       f"{', compiled' if row['compile'] else ''})", flush=True)
-            ratio = rows[0]["trials_per_min"] / rows[1]["trials_per_min"]
-            print(f"   batched / numpy: {ratio:.2f}x", flush=True)
-            out["evaluation"] = {"batched": rows[0], "numpy": rows[1], "ratio": ratio}
+                save()
+            rows["ratio"] = rows["batched"]["trials_per_min"] / rows["numpy"]["trials_per_min"]
+            print(f"   batched / numpy: {rows['ratio']:.2f}x", flush=True)
+            save()
         if not args.skip_collect:
             print("2. collection, expert, spheres/medium at 3-7 m/s (HDF5 writes included)", flush=True)
-            rows = [collection(args, workdir, "batched", args.flights),
-                    collection(args, workdir, "numpy", args.numpy_flights)]
-            for row in rows:
-                print(f"   {row['engine']:8s} {row['flights']:5d} flights ({row['frames']} frames) in "
-                      f"{row['wall_s']:6.1f} s: {row['frames_per_s']:8.0f} frames/s (engine on {row['sim_device']}, "
-                      f"{row['dtype']}{', compiled' if row['compile'] else ''})", flush=True)
-            ratio = rows[0]["frames_per_s"] / rows[1]["frames_per_s"]
-            print(f"   batched / numpy: {ratio:.2f}x", flush=True)
-            out["collection"] = {"batched": rows[0], "numpy": rows[1], "ratio": ratio}
-    if args.json:
-        args.json.parent.mkdir(parents=True, exist_ok=True)
-        args.json.write_text(json.dumps(out, indent=2))
+            rows = out["collection"] = {}
+            for engine, flights in (("numpy", args.numpy_flights), ("batched", args.flights)):
+                row = rows[engine] = collection(args, workdir, engine, flights)
+                print(f"   {engine:8s} {row['flights']:5d} flights ({row['frames']} frames) in {row['wall_s']:6.1f} s: "
+                      f"{row['frames_per_s']:8.0f} frames/s (engine on {row['sim_device']}, {row['dtype']}"
+                      f"{', compiled' if row['compile'] else ''})", flush=True)
+                save()
+            rows["ratio"] = rows["batched"]["frames_per_s"] / rows["numpy"]["frames_per_s"]
+            print(f"   batched / numpy: {rows['ratio']:.2f}x", flush=True)
+            save()
 
 
 if __name__ == "__main__":
