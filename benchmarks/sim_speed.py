@@ -212,6 +212,7 @@ def batched_speed(args) -> dict:
             start = time.perf_counter()
             runs[key]()
             warmup[key] = time.perf_counter() - start
+            print(f"   (warm-up of batched {key}: {warmup[key]:.1f} s)", flush=True)
     # the engines take turns, repeat by repeat, and each one's best (least CPU time) counts
     best: dict = {}
     for _ in range(args.batched_repeats):
