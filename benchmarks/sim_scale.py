@@ -103,34 +103,30 @@ def main() -> None:
             args.json.parent.mkdir(parents=True, exist_ok=True)
             args.json.write_text(json.dumps(out, indent=2))
 
+    def part(name: str, measure, counts: dict, rate: str, line) -> None:
+        """Both engines, the short numpy reference first (a timeout in the long run keeps it), then their ratio."""
+        rows = out[name] = {}
+        for engine in ("numpy", "batched"):
+            row = rows[engine] = measure(args, workdir, engine, counts[engine])
+            print(f"   {engine:8s} {line(row)} (engine on {row['sim_device']}, {row['dtype']}"
+                  f"{', compiled' if row['compile'] else ''})", flush=True)
+            save()
+        rows["ratio"] = rows["batched"][rate] / rows["numpy"][rate]
+        print(f"   batched / numpy: {rows['ratio']:.2f}x", flush=True)
+        save()
+
     with tempfile.TemporaryDirectory() as tmp:
         workdir = Path(tmp)
         if not args.skip_eval:
             print(f"1. evaluation, {args.policy}, spheres/medium at 3/5/7 m/s", flush=True)
-            rows = out["evaluation"] = {}
-            # the short reference first, so that a timeout in the long run leaves both numbers but one
-            for engine, trials in (("numpy", args.numpy_trials), ("batched", args.trials)):
-                row = rows[engine] = evaluation(args, workdir, engine, trials)
-                print(f"   {engine:8s} {row['trials']:6d} trials in {row['wall_s']:7.1f} s: "
-                      f"{row['trials_per_min']:8.1f} trials/min (success {row['success']:.0%}; "
-                      f"{row['num_envs']} in lockstep, engine on {row['sim_device']}, {row['dtype']}"
-                      f"{', compiled' if row['compile'] else ''})", flush=True)
-                save()
-            rows["ratio"] = rows["batched"]["trials_per_min"] / rows["numpy"]["trials_per_min"]
-            print(f"   batched / numpy: {rows['ratio']:.2f}x", flush=True)
-            save()
+            part("evaluation", evaluation, {"numpy": args.numpy_trials, "batched": args.trials}, "trials_per_min",
+                 lambda r: (f"{r['trials']:6d} trials in {r['wall_s']:7.1f} s: {r['trials_per_min']:8.1f} trials/min "
+                            f"(success {r['success']:.0%}; {r['num_envs']} in lockstep)"))
         if not args.skip_collect:
             print("2. collection, expert, spheres/medium at 3-7 m/s (HDF5 writes included)", flush=True)
-            rows = out["collection"] = {}
-            for engine, flights in (("numpy", args.numpy_flights), ("batched", args.flights)):
-                row = rows[engine] = collection(args, workdir, engine, flights)
-                print(f"   {engine:8s} {row['flights']:5d} flights ({row['frames']} frames) in {row['wall_s']:6.1f} s: "
-                      f"{row['frames_per_s']:8.0f} frames/s (engine on {row['sim_device']}, {row['dtype']}"
-                      f"{', compiled' if row['compile'] else ''})", flush=True)
-                save()
-            rows["ratio"] = rows["batched"]["frames_per_s"] / rows["numpy"]["frames_per_s"]
-            print(f"   batched / numpy: {rows['ratio']:.2f}x", flush=True)
-            save()
+            part("collection", collection, {"numpy": args.numpy_flights, "batched": args.flights}, "frames_per_s",
+                 lambda r: (f"{r['flights']:5d} flights ({r['frames']} frames) in {r['wall_s']:6.1f} s: "
+                            f"{r['frames_per_s']:8.0f} frames/s"))
 
 
 if __name__ == "__main__":
