@@ -146,15 +146,21 @@ class RecordBatches(L.Callback):
         self.val.append({k: v.clone() for k, v in batch.items()})
 
 
+def record_batches(dm, root) -> RecordBatches:
+    """One epoch of a ConvNet on ``dm``; every training and validation batch as the module received it."""
+    record = RecordBatches()
+    trainer = L.Trainer(max_epochs=1, logger=False, enable_checkpointing=False, enable_progress_bar=False,
+                        enable_model_summary=False, default_root_dir=root, callbacks=[record],
+                        num_sanity_val_steps=0)
+    trainer.fit(create_policy("convnet", warmup_epochs=0, tbptt_steps=None), datamodule=dm)
+    return record
+
+
 def test_datamodule_mirrors_training_batches_only(tmp_path):
     path = write_dataset(tmp_path / "d.h5", [6, 9, 4, 7, 5])
     ds = TrajectoryDataset(path)
     dm = TrajectoryDataModule(path, batch_size=2, val_fraction=0.4, cache_mb=8, mirror_prob=1.0)
-    record = RecordBatches()
-    trainer = L.Trainer(max_epochs=1, logger=False, enable_checkpointing=False, enable_progress_bar=False,
-                        enable_model_summary=False, default_root_dir=tmp_path, callbacks=[record],
-                        num_sanity_val_steps=0)
-    trainer.fit(create_policy("convnet", warmup_epochs=0, tbptt_steps=None), datamodule=dm)
+    record = record_batches(dm, tmp_path)
     assert record.train and record.val
     for batches, mirrored in ((record.train, True), (record.val, False)):
         for batch in batches:

@@ -9,11 +9,10 @@ from __future__ import annotations
 import json
 import math
 
-import lightning as L
 import numpy as np
 import pytest
 import torch
-from test_augment_mirror import RecordBatches
+from test_augment_mirror import record_batches
 from test_datamodule import write_dataset
 
 from vitfly.datamodules.datamodule import TrajectoryDataModule
@@ -22,7 +21,6 @@ from vitfly.datamodules.sensor_augment import SensorRandomisation, check_sensor,
 from vitfly.errors import VitflyError
 from vitfly.sensors.stereo import ImageGeometry
 from vitfly.sim.camera import CAMERA_PRESETS, CameraConfig
-from vitfly.zoo.policy import create_policy
 
 QUIET = {"model": "d435", "subpixel_rms_px": 0.0, "pattern_rms_px": 0.0, "occlusion": False}
 
@@ -127,11 +125,7 @@ def test_datamodule_models_training_batches_only(tmp_path, one_torch_thread, res
     ds = TrajectoryDataset(path)
     dm = TrajectoryDataModule(path, batch_size=2, val_fraction=0.4, cache_mb=8, mirror_prob=1.0, sensor_prob=1.0,
                               sensor=QUIET, resident=resident)
-    record = RecordBatches()
-    trainer = L.Trainer(max_epochs=1, logger=False, enable_checkpointing=False, enable_progress_bar=False,
-                        enable_model_summary=False, default_root_dir=tmp_path, callbacks=[record],
-                        num_sanity_val_steps=0)
-    trainer.fit(create_policy("convnet", warmup_epochs=0, tbptt_steps=None), datamodule=dm)
+    record = record_batches(dm, tmp_path)
     assert record.train and record.val
     expected_value = np.vectorize(lambda u: 0.8 if u in (0, 255) or u / 25.5 < 0.28 else hand_d435(u / 25.5))
     for batches, modelled in ((record.train, True), (record.val, False)):
