@@ -103,7 +103,7 @@ def main() -> None:
             args.json.parent.mkdir(parents=True, exist_ok=True)
             args.json.write_text(json.dumps(out, indent=2))
 
-    def part(name: str, measure, counts: dict, rate: str, line) -> None:
+    def part(name: str, measure, workdir: Path, counts: dict, rate: str, line) -> None:
         """Both engines, the short numpy reference first (a timeout in the long run keeps it), then their ratio."""
         rows = out[name] = {}
         for engine in ("numpy", "batched"):
@@ -119,12 +119,14 @@ def main() -> None:
         workdir = Path(tmp)
         if not args.skip_eval:
             print(f"1. evaluation, {args.policy}, spheres/medium at 3/5/7 m/s", flush=True)
-            part("evaluation", evaluation, {"numpy": args.numpy_trials, "batched": args.trials}, "trials_per_min",
+            part("evaluation", evaluation, workdir, {"numpy": args.numpy_trials, "batched": args.trials},
+                 "trials_per_min",
                  lambda r: (f"{r['trials']:6d} trials in {r['wall_s']:7.1f} s: {r['trials_per_min']:8.1f} trials/min "
                             f"(success {r['success']:.0%}; {r['num_envs']} in lockstep)"))
         if not args.skip_collect:
             print("2. collection, expert, spheres/medium at 3-7 m/s (HDF5 writes included)", flush=True)
-            part("collection", collection, {"numpy": args.numpy_flights, "batched": args.flights}, "frames_per_s",
+            part("collection", collection, workdir, {"numpy": args.numpy_flights, "batched": args.flights},
+                 "frames_per_s",
                  lambda r: (f"{r['flights']:5d} flights ({r['frames']} frames) in {r['wall_s']:6.1f} s: "
                             f"{r['frames_per_s']:8.0f} frames/s"))
 
