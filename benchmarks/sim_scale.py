@@ -2,7 +2,7 @@
 time, the batched engine on ``--device`` beside the numpy engine, in one run.
 
     .venv/bin/python benchmarks/sim_scale.py                                  # CPU: 96 trials, 32 flights
-    python3 benchmarks/sim_scale.py --device cuda --trials 10000 --num-envs 4096 --flights 588 \\
+    python3 benchmarks/sim_scale.py --device cuda --trials 10000 --num-envs 4096 --flights 588 --warm \\
         --json $OUT/sim_scale.json                                            # one H100 (issue 23)
 
 1. Evaluation: ``vitfly evaluate``'s library call (``vitfly.eval.sweep.run_sweep``) flies ``--policy``
@@ -15,8 +15,11 @@ time, the batched engine on ``--device`` beside the numpy engine, in one run.
 2. Collection: ``vitfly collect``'s library call writes ``--flights`` expert trajectories (spheres/medium,
    3-7 m/s, seed 0, native physics: the ``paper`` preset's data for 588) with the batched engine, all in one
    lockstep batch, ``--collect-dtype`` (float64 by default: the numpy engine's data), compiled; before it the
-   numpy engine collects ``--numpy-flights`` (one worker). Seconds, frames per second. ``--json`` is
-   written after every measurement, so a run cut short keeps what it measured.
+   numpy engine collects ``--numpy-flights`` (one worker). Seconds, frames per second.
+
+``--warm`` runs the batched engine a second time in each part, in the same process (row ``batched_warm``):
+the rate of every sweep after a process's first, its kernels compiled. ``--json`` is written after every
+measurement, so a run cut short keeps what it measured.
 
 Issue 23's targets on one H100: 10,000 ViT+LSTM trials in at most 2 minutes; the 588-flight dataset in at
 most 10 s. On a CPU the policy's network dominates a learned policy's tick (see docs/performance.md).
@@ -41,11 +44,12 @@ from vitfly.sim.collect import CollectConfig, collect
 SPEEDS = [3.0, 5.0, 7.0]
 
 
-def evaluation(args, workdir: Path, engine: str, trials: int) -> dict:
-    """Fly ``trials`` trials (spread over the three speeds) with one engine; trials per minute."""
+def evaluation(args, workdir: Path, engine: str, trials: int, run: str) -> dict:
+    """Fly ``trials`` trials (spread over the three speeds) with one engine into ``workdir/run``; trials per
+    minute."""
     batched = engine == "batched"
     cfg = SweepConfig(policy=args.policy, name=engine, env=["spheres"], speeds=SPEEDS,
-                      trials=math.ceil(trials / len(SPEEDS)), seed=args.seed, out=str(workdir / engine),
+                      trials=math.ceil(trials / len(SPEEDS)), seed=args.seed, out=str(workdir / run),
                       num_envs=args.num_envs if batched else 16, device=args.device, threads=args.threads,
                       sim=engine, sim_device=args.device if batched else "cpu",
                       sim_dtype=args.dtype if batched else "float64", sim_compile=batched and not args.eager,
@@ -60,15 +64,16 @@ def evaluation(args, workdir: Path, engine: str, trials: int) -> dict:
             "compile": cfg.sim_compile}
 
 
-def collection(args, workdir: Path, engine: str, flights: int) -> dict:
-    """Collect ``flights`` expert trajectories with one engine; seconds and frames per second."""
+def collection(args, workdir: Path, engine: str, flights: int, run: str) -> dict:
+    """Collect ``flights`` expert trajectories with one engine into ``workdir/run.h5``; seconds and frames
+    per second."""
     batched = engine == "batched"
     cfg = CollectConfig(trajectories=flights, physics="native", seed=0, sim=engine,
                         sim_device=args.device if batched else "cpu",
                         sim_dtype=args.collect_dtype if batched else "float64",
                         sim_compile=batched and not args.eager, num_envs=flights if batched else 8)
     start = time.perf_counter()
-    summary = collect(cfg, workdir / f"{engine}.h5", progress=False)
+    summary = collect(cfg, workdir / f"{run}.h5", progress=False)
     wall = time.perf_counter() - start
     return {"engine": engine, "flights": summary.trajectories, "frames": summary.frames, "wall_s": wall,
             "frames_per_s": summary.frames / wall, "sim_device": cfg.sim_device, "dtype": cfg.sim_dtype,
@@ -88,6 +93,9 @@ def main() -> None:
     parser.add_argument("--numpy-flights", type=int, default=8, help="expert trajectories, numpy engine")
     parser.add_argument("--collect-dtype", choices=("float32", "float64"), default="float64")
     parser.add_argument("--eager", action="store_true", help="the batched engine without torch.compile")
+    parser.add_argument("--warm", action="store_true",
+                        help="the batched engine once more in the same process (compiled kernels reused): "
+                             "the rate of every sweep after a process's first")
     parser.add_argument("--seed", type=int, default=2323, help="the evaluation's sweep seed")
     parser.add_argument("--threads", type=int, default=1, help="torch threads")
     parser.add_argument("--skip-eval", action="store_true")
@@ -104,16 +112,20 @@ def main() -> None:
             args.json.write_text(json.dumps(out, indent=2))
 
     def part(name: str, measure, workdir: Path, counts: dict, rate: str, line) -> None:
-        """Both engines, the short numpy reference first (a timeout in the long run keeps it), then their ratio."""
+        """Both engines, the short numpy reference first (a timeout in the long run keeps it), then their ratio;
+        with ``--warm`` the batched engine again, its kernels compiled (row ``batched_warm``)."""
         rows = out[name] = {}
-        for engine in ("numpy", "batched"):
-            row = rows[engine] = measure(args, workdir, engine, counts[engine])
-            print(f"   {engine:8s} {line(row)} (engine on {row['sim_device']}, {row['dtype']}"
+        runs = [("numpy", "numpy"), ("batched", "batched")] + ([("batched", "batched_warm")] if args.warm else [])
+        for engine, run in runs:
+            row = rows[run] = measure(args, workdir, engine, counts[engine], run)
+            print(f"   {run:12s} {line(row)} (engine on {row['sim_device']}, {row['dtype']}"
                   f"{', compiled' if row['compile'] else ''})", flush=True)
             save()
-        rows["ratio"] = rows["batched"][rate] / rows["numpy"][rate]
-        print(f"   batched / numpy: {rows['ratio']:.2f}x", flush=True)
-        save()
+            if engine == "batched":
+                key = "ratio" if run == "batched" else "ratio_warm"
+                rows[key] = row[rate] / rows["numpy"][rate]
+                print(f"   {run} / numpy: {rows[key]:.2f}x", flush=True)
+                save()
 
     with tempfile.TemporaryDirectory() as tmp:
         workdir = Path(tmp)

@@ -204,13 +204,15 @@ class BatchedLearnedPolicy:
         if n != p.num_envs:
             raise ValueError(f"policy was reset for {p.num_envs} envs but got observations of {n}")
         raw = torch.zeros(n, 3, dtype=torch.float64, device=obs.depth.device)
-        active = obs.active
-        idx = torch.nonzero(active).flatten()
+        # the tick's active rows by index: one nonzero (on a GPU, the call's one wait for the device); a boolean
+        # mask would wait again at every gather and at the scatter
+        idx = torch.nonzero(obs.active).flatten()
         if len(idx):
             f32 = dict(device=p.device, dtype=torch.float32)
-            rows = p.network_rows(idx.to(p.device), obs.depth[active].to(**f32), obs.desired_speed[active].to(**f32),
-                                  obs.quat[active].to(**f32))
-            raw[active] = rows.to(raw)
+            rows = p.network_rows(idx.to(p.device), obs.depth.index_select(0, idx).to(**f32),
+                                  obs.desired_speed.index_select(0, idx).to(**f32),
+                                  obs.quat.index_select(0, idx).to(**f32))
+            raw.index_copy_(0, idx, rows.to(raw))
         x_m = obs.position[:, 0].to(raw) if p.takeoff_ramp else None
         return deploy_command_torch(raw, obs.desired_speed.to(raw), x_m).to(obs.position.dtype)
 
@@ -221,7 +223,8 @@ def deploy_command_torch(raw: torch.Tensor, desired_speed_mps: torch.Tensor, x_m
     v = raw.clone()
     v[:, 0] = v[:, 0].clamp(-1.0, 1.0)
     norm = torch.sqrt(v[:, 0] * v[:, 0] + v[:, 1] * v[:, 1] + v[:, 2] * v[:, 2])[:, None]
-    ahead = torch.tensor([1.0, 0.0, 0.0], dtype=v.dtype, device=v.device)
+    ahead = torch.zeros(3, dtype=v.dtype, device=v.device)  # filled on the device: no copy from the host
+    ahead[0] = 1.0
     unit = torch.where(norm > 1e-9, v / norm.clamp_min(1e-12), ahead)
     command = unit * desired_speed_mps[:, None]
     if x_m is not None:

@@ -218,7 +218,8 @@ def run_batched(
         # 3. physics steps with the cascaded controller; contact, goal and bounds of the running envs
         for _ in range(substeps):
             time_s += dt
-            state, track = substep(state, track, command, candidates, torch.tensor(time_s, **like), task.goal_x_m,
+            # torch.full fills on the device; torch.tensor would copy from the host and, on a GPU, wait for it
+            state, track = substep(state, track, command, candidates, torch.full((), time_s, **like), task.goal_x_m,
                                    lo, hi, batch, af, gains, dt, task.body_radius_m)
         # 4. log the tick, the timeouts, close the episodes that ended
         row["command"][:], row["contact"][:] = commands, track.tick_contact
