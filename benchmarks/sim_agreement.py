@@ -9,8 +9,10 @@ Flies every ``--policies`` entry through ``vitfly evaluate --sim batched`` twice
 on the same device), into ``--out`` (labels ``<policy>-float64`` and ``<policy>-float32``; an interrupted run
 resumes there). It then pairs the trials by (env, speed, trial) and reports, per policy, the share of
 trials whose outcome is the same in both precisions: success (the paper's: no collision), goal reached and
-the number of collisions all equal. The 95 % interval is Clopper-Pearson on the agreeing count. Issue 23's
-target: at least 98 % agreement on a GPU in float32.
+the number of collisions all equal. Beside it the share whose *ending* is the same: success and the end
+reason (goal, timeout, out of bounds), collision counts aside, which is what success rates and the paper's
+tables rest on. The 95 % intervals are Clopper-Pearson on the agreeing counts. Issue 23's target: at least
+98 % agreement on a GPU in float32.
 
 Rounding differs at 1e-7 relative in float32, and a closed loop amplifies it near a decision (a sphere
 grazed or not), so some disagreement is expected; what matters is that it is rare and not one-sided.
@@ -37,6 +39,17 @@ def outcome(rec: TrialRecord) -> tuple[bool, bool, int]:
     return rec.success_paper, rec.reached_goal, int(rec.metrics["collisions"])
 
 
+def ending(rec: TrialRecord) -> tuple[bool, str]:
+    """How a trial ended: the paper's success and the end reason (a graze counted twice instead of once, or
+    a collision more in a trial that collides anyway, leaves it alone)."""
+    return rec.success_paper, rec.end_reason
+
+
+def _share(agree: int, pairs: int) -> tuple[float, list[float]]:
+    ci = binomtest(agree, pairs).proportion_ci(0.95, method="exact")
+    return agree / pairs, [ci.low, ci.high]
+
+
 def agreement(records: list[TrialRecord], label: str) -> dict:
     """Pair ``label``-float64 with ``label``-float32 trials by (env, speed, trial); agreement and its interval.
 
@@ -48,14 +61,15 @@ def agreement(records: list[TrialRecord], label: str) -> dict:
     if not keys:
         raise SystemExit(f"no trials of {label} flown in both float64 and float32")
     same = sum(outcome(runs["float64"][k]) == outcome(runs["float32"][k]) for k in keys)
+    same_end = sum(ending(runs["float64"][k]) == ending(runs["float32"][k]) for k in keys)
     flips = Counter()
     for k in keys:
         a, b = runs["float64"][k].success_paper, runs["float32"][k].success_paper
         if a != b:
             flips["float32 succeeds, float64 not" if b else "float64 succeeds, float32 not"] += 1
-    ci = binomtest(same, len(keys)).proportion_ci(0.95, method="exact")
-    return {"policy": label, "pairs": len(keys), "agree": same, "agreement": same / len(keys),
-            "ci95": [ci.low, ci.high], "success_flips": dict(flips),
+    (share, ci), (share_end, ci_end) = _share(same, len(keys)), _share(same_end, len(keys))
+    return {"policy": label, "pairs": len(keys), "agree": same, "agreement": share, "ci95": ci,
+            "agree_end": same_end, "agreement_end": share_end, "ci95_end": ci_end, "success_flips": dict(flips),
             "success_float64": sum(runs["float64"][k].success_paper for k in keys) / len(keys),
             "success_float32": sum(runs["float32"][k].success_paper for k in keys) / len(keys)}
 
@@ -97,6 +111,8 @@ def main() -> None:
     for r in rows:
         print(f"{r['policy']}: {r['agree']}/{r['pairs']} trials end alike in float32 and float64 "
               f"({100 * r['agreement']:.1f} %, 95 % CI {100 * r['ci95'][0]:.1f}-{100 * r['ci95'][1]:.1f}); "
+              f"success and end reason alike in {r['agree_end']} ({100 * r['agreement_end']:.1f} %, 95 % CI "
+              f"{100 * r['ci95_end'][0]:.1f}-{100 * r['ci95_end'][1]:.1f}); "
               f"success {100 * r['success_float64']:.1f} % (float64) vs {100 * r['success_float32']:.1f} % "
               f"(float32); flips {r['success_flips'] or 'none'}")
     if args.json:

@@ -43,6 +43,10 @@ def test_agreement_counts_outcomes_pair_by_pair(bench):
     assert row["success_float64"] == pytest.approx(3 / 5) and row["success_float32"] == pytest.approx(2 / 5)
     # Clopper-Pearson for 2 of 5 (from beta quantiles): 0.0527 .. 0.8534
     assert row["ci95"] == pytest.approx([0.05274, 0.85337], abs=1e-4)
+    # endings (success, end reason): trials 0, 1 and 2 alike (2's extra collision aside); 3 flips success, 4 ends
+    # in a timeout instead of the goal: 3 of 5; Clopper-Pearson 0.1466 .. 0.9473
+    assert (row["agree_end"], row["agreement_end"]) == (3, pytest.approx(0.6))
+    assert row["ci95_end"] == pytest.approx([0.14663, 0.94726], abs=1e-4)
 
 
 @pytest.mark.slow
