@@ -14,11 +14,12 @@ def check_torch_device(device: str, source: str) -> None:
     import torch
 
     try:
-        where = torch.device(device)
+        kind = torch.device(device).type
     except (RuntimeError, ValueError):
-        raise VitflyError(f"{source} is {device!r}; expected cpu, cuda or cuda:N") from None
-    if where.type not in ("cpu", "cuda"):
+        kind = None  # not a device name at all: the same message as a device of another kind
+    if kind not in ("cpu", "cuda"):
         raise VitflyError(f"{source} is {device!r}; expected cpu, cuda or cuda:N")
+    where = torch.device(device)
     if where.type == "cuda":
         if not torch.cuda.is_available():
             raise VitflyError(f"{source} is {device!r} but torch sees no CUDA device here; use cpu")
