@@ -93,7 +93,7 @@ def train_one(args: argparse.Namespace) -> int:
     """One run, exactly as ``vitfly reproduce``'s train stage trains it, ended early when the slot ends."""
     from scripts.gpu_slots import SlotEnded, SlotStop
     from vitfly.workflows.pipeline import stage_train
-    from vitfly.workflows.reproduce import _add_cost
+    from vitfly.workflows.reproduce import _add_cost, _fit_seconds
     from vitfly.workflows.reproduce_config import train_callbacks, train_stage
 
     cfg = load_cfg(args)
@@ -101,14 +101,15 @@ def train_one(args: argparse.Namespace) -> int:
     stage, callbacks = train_callbacks(train_stage(cfg, model, use_state), cfg, "reproduce config")
     slot = SlotStop(args.stop_at, args.stop_after_epochs, args.epoch_s)
     train_dir = cfg.train_dir(model, use_state)
+    fit_before_s = _fit_seconds(train_dir)
     t0 = time.perf_counter()
     try:
         stage_train(stage, cfg.data, train_dir, args.threads, progress=False, callbacks=[*callbacks, slot])
     except SlotEnded as stop:  # stage_train writes no done.json: the run is unfinished
         print(f"[train] {args.train_one}: slot ended after {slot.trained} epochs here: {stop}", flush=True)
-        _add_cost(train_dir, time.perf_counter() - t0)
+        _add_cost(train_dir, time.perf_counter() - t0, fit_before_s)
         return SLOT_ENDED_RC
-    _add_cost(train_dir, time.perf_counter() - t0)
+    _add_cost(train_dir, time.perf_counter() - t0, fit_before_s)
     return 0
 
 

@@ -147,6 +147,9 @@ def test_a_run_stopped_in_one_slot_resumes_in_the_next_exactly(tmp_path, data, t
     saved = torch.load(run / "checkpoints" / "last.ckpt", map_location="cpu", weights_only=True)
     assert (saved["epoch"], saved["global_step"]) == (0, 2)
     assert saved["optimizer_states"][0]["state"][0]["exp_avg_sq"].dtype == torch.float32
+    fit_s = saved["callbacks"]["Timer"]["time_elapsed"]["train"]  # the stopwatch travels with the run
+    cost = json.loads((run / "cost.json").read_text())
+    assert fit_s > 0 and (cost["sessions"], cost["fit_s"], cost["killed_s"]) == (1, fit_s, 0.0)
     dirs = {s["dirpath"] for s in saved["callbacks"].values() if "dirpath" in s}
     assert dirs == {os.path.realpath(run / "checkpoints")}  # pointed at its new home
 
@@ -171,6 +174,8 @@ def test_a_run_stopped_in_one_slot_resumes_in_the_next_exactly(tmp_path, data, t
                      "--resume-from", str(run)]) == 0
     entry = json.loads((tmp_path / "back2" / "gpu_reproduce.json").read_text())["runs"]["vit_lstm-state"]
     assert (entry["state"], entry["epochs"], entry["packed"]) == ("finished", [1, 2], True)
+    cost = json.loads((gpu2 / "train" / "vit_lstm-state" / "cost.json").read_text())
+    assert cost["sessions"] == 2 and cost["fit_s"] > fit_s and cost["killed_s"] == 0.0  # a slot's end is no kill
 
     # ... exactly where an uninterrupted 2-epoch run ends (its LSTM dropout included)
     cfg = load_reproduce_config(two_epochs, "tiny", {"data": str(data)})

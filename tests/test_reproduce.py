@@ -7,17 +7,20 @@ tests/test_reproduce_tiny.py (slow).
 from __future__ import annotations
 
 import dataclasses
+import json
 import math
 from pathlib import Path
 
 import numpy as np
 import pytest
+import torch
 
 from vitfly.errors import VitflyError
 from vitfly.eval.findings import findings_markdown, paper_findings, wilson
 from vitfly.eval.records import TrialRecord
 from vitfly.eval.repeats import RepeatPlan, mean_path
-from vitfly.workflows.reproduce_config import load_reproduce_config, recipe_fields, train_stage
+from vitfly.workflows.reproduce import _add_cost, _fit_seconds
+from vitfly.workflows.reproduce_config import load_reproduce_config, recipe_fields, train_callbacks, train_stage
 
 REPO = Path(__file__).resolve().parents[1]
 CONFIG = REPO / "configs" / "reproduce.yaml"
@@ -256,6 +259,44 @@ def test_repeat_offsets_are_bounded_and_fixed_by_the_seed():
     np.testing.assert_array_equal(off, RepeatPlan(repeats=20, jitter_m=0.1, seed=5).offsets())
     np.testing.assert_array_equal(off[:5], RepeatPlan(repeats=5, jitter_m=0.1, seed=5).offsets())
     assert len({tuple(o) for o in off}) == 20
+
+
+# -- training cost over sessions ----------------------------------------------------------------------------
+
+
+def _last_ckpt_with_timer(train_dir: Path, fit_s: float) -> None:
+    """last.ckpt as Lightning leaves it, reduced to the Timer's state (seconds of fitting so far)."""
+    (train_dir / "checkpoints").mkdir(parents=True, exist_ok=True)
+    torch.save({"epoch": 0, "callbacks": {"Timer": {"time_elapsed": {"train": fit_s, "validate": 0.0}}}},
+               train_dir / "checkpoints" / "last.ckpt")
+
+
+def test_training_cost_counts_the_fitting_of_killed_sessions(tmp_path):
+    assert _fit_seconds(tmp_path) == 0.0  # nothing trained yet
+    # a first session, killed after its checkpoint at 300 s of fitting, left no cost.json
+    _last_ckpt_with_timer(tmp_path, 300.0)
+    before = _fit_seconds(tmp_path)
+    _last_ckpt_with_timer(tmp_path, 480.0)  # the second fits 180 s more, in 200 s of wall time, and finishes
+    assert _add_cost(tmp_path, 200.0, before) == {"wall_s": 500.0, "sessions": 1, "fit_s": 480.0, "killed_s": 300.0}
+    # a third, with no kill between: only its own wall time
+    before = _fit_seconds(tmp_path)
+    _last_ckpt_with_timer(tmp_path, 530.0)
+    assert _add_cost(tmp_path, 60.0, before) == {"wall_s": 560.0, "sessions": 2, "fit_s": 530.0, "killed_s": 300.0}
+    # a cost.json written before the Timer was read says nothing of what was lost: nothing is added
+    (tmp_path / "cost.json").write_text(json.dumps({"wall_s": 100.0, "sessions": 1}))
+    assert _add_cost(tmp_path, 10.0, 530.0)["wall_s"] == 110.0
+
+
+def test_every_run_has_a_stopwatch_and_max_time_keeps_its_own(monkeypatch):
+    from lightning.pytorch.callbacks import Timer
+
+    monkeypatch.chdir(REPO)
+    for preset, expected in (("tiny", 1), ("paper", 1), ("laptop", 0)):  # laptop: max_time brings Lightning's
+        cfg = load_reproduce_config(CONFIG, preset)
+        stage, callbacks = train_callbacks(train_stage(cfg, "convnet", True), cfg, "test")
+        timers = [c for c in callbacks if isinstance(c, Timer)]
+        assert len(timers) == expected, preset
+        assert all(t.time_remaining() is None for t in timers)  # a stopwatch: it never ends a run
 
 
 # -- the results page from shipped weights (train.source: pretrained) ------------------------------------

@@ -53,11 +53,30 @@ def stage_data(cfg: ReproduceConfig, progress: bool = True) -> dict:
     return stage_collect(cfg.collect_config, cfg.collect, cfg.data, progress)
 
 
-def _add_cost(train_dir: Path, seconds: float) -> dict:
-    """Add a finished training session's wall time to ``cost.json`` (a killed session's time is not counted)."""
+def _fit_seconds(train_dir: Path) -> float:
+    """Seconds of fitting that ``last.ckpt`` records (Lightning's ``Timer``, kept across resumes); 0 without it."""
+    import torch
+
+    last = train_dir / "checkpoints" / "last.ckpt"
+    if not last.exists():
+        return 0.0
+    callbacks = torch.load(last, map_location="cpu", weights_only=True).get("callbacks", {})
+    timer = next((v for k, v in callbacks.items() if k.split("{")[0] == "Timer"), None)
+    return float(timer["time_elapsed"]["train"]) if timer else 0.0
+
+
+def _add_cost(train_dir: Path, seconds: float, fit_before_s: float) -> dict:
+    """Add a finished training session's wall time to ``cost.json``.
+
+    A killed session never gets here, but the checkpoint it left carries its fitting time (the ``Timer``):
+    ``fit_before_s`` (``_fit_seconds`` before this session) beyond the ``fit_s`` that the last finished session
+    recorded is such time, counted up to the killed session's last checkpoint (its later work is redone).
+    """
     path = train_dir / "cost.json"
-    cost = json.loads(path.read_text()) if path.exists() else {"wall_s": 0.0, "sessions": 0}
-    cost = {"wall_s": cost["wall_s"] + seconds, "sessions": cost["sessions"] + 1}
+    cost = json.loads(path.read_text()) if path.exists() else {"wall_s": 0.0, "sessions": 0, "fit_s": 0.0}
+    killed_s = max(0.0, fit_before_s - cost.get("fit_s", fit_before_s))  # an older cost.json: nothing known lost
+    cost = {"wall_s": cost["wall_s"] + seconds + killed_s, "sessions": cost["sessions"] + 1,
+            "fit_s": _fit_seconds(train_dir), "killed_s": cost.get("killed_s", 0.0) + killed_s}
     write_text(path, json.dumps(cost) + "\n")
     return cost
 
@@ -70,11 +89,13 @@ def stage_train_all(cfg: ReproduceConfig, progress: bool = True) -> dict[str, Pa
         train_dir = cfg.train_dir(model, use_state)
         marker = train_dir / "done.json"
         before = marker.read_text() if marker.exists() else None
+        fit_before_s = _fit_seconds(train_dir)
         t0 = time.perf_counter()
         ckpt = stage_train(stage, cfg.data, train_dir, cfg.threads, progress, callbacks=callbacks)
         if marker.read_text() != before:  # it trained (done.json is rewritten only then)
-            cost = _add_cost(train_dir, time.perf_counter() - t0)
-            print(f"[train] {run_label(model, use_state)}: {cost['wall_s'] / 60:.1f} min of training so far")
+            cost = _add_cost(train_dir, time.perf_counter() - t0, fit_before_s)
+            killed = f" ({cost['killed_s'] / 60:.1f} of them in killed sessions)" if cost["killed_s"] else ""
+            print(f"[train] {run_label(model, use_state)}: {cost['wall_s'] / 60:.1f} min of training so far{killed}")
         checkpoints[run_label(model, use_state)] = ckpt
         if use_state and cfg.train.publish_weights and model in cfg.train.publish_models:
             publish(cfg, model, ckpt, stage)
