@@ -356,3 +356,6 @@ def test_pretrained_source_evaluates_and_records_closed_loop(tmp_path, monkeypat
     assert "| pretrained:convnet | test | 7 | 123 |" in results
     # straight flight and the ConvNet flew the same two scenes: the paired section compares them
     assert "## Paired comparisons" in results and "ResNet-18 and ConvNet not flown on shared scenes" in results
+    lines = results.splitlines()  # sections not flown (modular, paths) still leave every heading its blank line
+    assert all(lines[i - 1] == "" for i, line in enumerate(lines) if line.startswith("## "))
+    assert "## Modular baselines\n\n(not flown)\n\n## Latency" in results

@@ -281,7 +281,7 @@ def results_markdown(cfg: ReproduceConfig, findings_md: str, files: dict[str, Pa
         "speeds of a drawn scene), and for success McNemar's exact test beside it. A claim is decided when its "
         "interval excludes 0 (vitfly.eval.paired).",
         "",
-        paired_md or "(no trials yet)",
+        paired_md or "(no trials yet)\n",
         "## Training",
         "",
         _training_table(cfg),
@@ -299,15 +299,13 @@ def results_markdown(cfg: ReproduceConfig, findings_md: str, files: dict[str, Pa
         "",
         "## Ablation: state input",
         "",
-        ablation_md or "(not evaluated)",
+        ablation_md or "(not evaluated)\n",
         "## Modular baselines",
         "",
-        (f"Spheres, scenes of sweep seed {cfg.modular.seed if cfg.modular.seed is not None else e.seed}, "
-         f"{cfg.modular.trials} trials per speed and policy (figure: modular baselines; the finding above).")
-        if modular_md else "",
-        "",
-        modular_md or "(not flown)",
+        *([f"Spheres, scenes of sweep seed {cfg.modular.seed if cfg.modular.seed is not None else e.seed}, "
+           f"{cfg.modular.trials} trials per speed and policy (figure: modular baselines; the finding above).", "",
+           modular_md] if modular_md else ["(not flown)\n"]),
         "## Latency",
         "",
-        latency_md or "(not measured)",
+        latency_md or "(not measured)\n",
     ]) + "\n"
