@@ -315,14 +315,14 @@ def train_stage(cfg: ReproduceConfig, model: str, use_state: bool, source: str =
 def train_callbacks(stage: TrainStage, cfg: ReproduceConfig, source: str) -> tuple[TrainStage, list]:
     """Callbacks out of ``trainer_kwargs`` (built from class_path), plus the closed-loop check if asked for, and
     a stopwatch (Lightning's ``Timer``) where no ``max_time`` brings one: ``cost.json`` reads it."""
+    from lightning.pytorch.callbacks import Timer
+
     kwargs = dict(stage.trainer_kwargs)
     specs = kwargs.pop("callbacks", None) or []
     callbacks = [_instantiate(s, f"{source}: trainer.callbacks") for s in (specs if isinstance(specs, list)
                                                                            else [specs])]
     if cfg.train.closed_loop_check is not None:
         callbacks.append(_closed_loop_check(cfg.train.closed_loop_check, source))
-    from lightning.pytorch.callbacks import Timer
-
     if kwargs.get("max_time") is None and not any(isinstance(c, Timer) for c in callbacks):
         callbacks.append(Timer(duration=None, verbose=False))  # its state in last.ckpt counts killed sessions
     return dataclasses.replace(stage, trainer_kwargs=kwargs), callbacks
