@@ -261,6 +261,25 @@ def test_repeat_offsets_are_bounded_and_fixed_by_the_seed():
     assert len({tuple(o) for o in off}) == 20
 
 
+def test_train_seed_retrains_every_run_with_another_seed_in_its_own_directory(monkeypatch, tmp_path):
+    import argparse
+
+    from vitfly.commands import reproduce as command
+
+    monkeypatch.chdir(REPO)
+    parser = argparse.ArgumentParser()
+    command.add_arguments(parser)
+    default = command.config_from_args(parser.parse_args(["--preset", "laptop"]))
+    args = ["--preset", "laptop", "--models", "convnet", "--train-seed", "3"]
+    with pytest.raises(VitflyError, match=r"--train-seed 3: give --out too \(the preset's runs/reproduce-laptop"):
+        command.config_from_args(parser.parse_args(args))
+    cfg = command.config_from_args(parser.parse_args([*args, "--out", str(tmp_path / "s3")]))
+    assert cfg.train.models == cfg.train.nostate_models == ["convnet"] and cfg.out == str(tmp_path / "s3")
+    seeded, own = train_stage(cfg, "convnet", True), train_stage(default, "convnet", True)
+    assert (own.seed, seeded.seed) == (0, 3)
+    assert dataclasses.replace(seeded, seed=0) == own  # nothing else of the recipe moves (30 epochs, the cap, ...)
+
+
 # -- training cost over sessions ----------------------------------------------------------------------------
 
 

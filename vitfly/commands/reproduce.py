@@ -10,30 +10,46 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
     parser.add_argument("--config", default="reproduce",
                         help="reproduce YAML: a path, or a shipped config's name (`vitfly configs`)")
-    parser.add_argument("--preset", help="a section under 'presets' in the YAML: tiny (CI, minutes), laptop (one "
-                        "working day on 2 CPU cores), paper (the paper's protocol and training recipe, for a GPU), "
+    parser.add_argument("--preset", help="a section under 'presets' in the YAML: tiny (CI, minutes), laptop (about "
+                        "4 h on 2 CPU cores), paper (the paper's protocol and training recipe, for a GPU), "
                         "paper_vitfly (the same budget with vitfly's recipes in large batches, for a GPU)")
     parser.add_argument("--out", help="run directory (train/, eval/, figures/, results.md)")
     parser.add_argument("--data", help="HDF5 training dataset (collected or completed if needed)")
     parser.add_argument("--models", nargs="+",
                         help="only these architectures (trained with and, where the config says, without state)")
+    parser.add_argument("--train-seed", type=int, metavar="N",
+                        help="train every run with this seed (its validation split and initialisation) instead of "
+                        "the recipes' own; needs --out, so that runs of two seeds never share a directory")
     parser.add_argument("--stages", nargs="+", choices=STAGES, metavar="STAGE",
                         help=f"only these stages (run in the order {', '.join(STAGES)}); None: all of them")
     parser.add_argument("--no-progress", action="store_true", help="no progress bars")
 
 
-def run(args: argparse.Namespace) -> int:
+def config_from_args(args: argparse.Namespace):
+    """The study's ``ReproduceConfig``: the YAML and its preset, then --out, --data, --train-seed and --models."""
     import dataclasses
 
-    from vitfly.workflows.reproduce import run_reproduce
+    from vitfly.errors import VitflyError
     from vitfly.workflows.reproduce_config import check_config, load_reproduce_config
 
     cfg = load_reproduce_config(args.config, args.preset, {"out": args.out, "data": args.data})
+    if args.train_seed is not None:
+        if args.out is None:
+            raise VitflyError(f"--train-seed {args.train_seed}: give --out too (the preset's {cfg.out} holds the "
+                              "runs of the recipes' own seeds)")
+        t = cfg.train
+        cfg = dataclasses.replace(cfg, train=dataclasses.replace(t, overrides={**t.overrides, "seed": args.train_seed}))
     if args.models:
         t = cfg.train
         cfg = dataclasses.replace(cfg, train=dataclasses.replace(
             t, models=list(args.models), nostate_models=[m for m in t.nostate_models if m in args.models],
             publish_models=[m for m in t.publish_models if m in args.models]))
         check_config(cfg, "--models")
-    run_reproduce(cfg, args.stages, progress=not args.no_progress)
+    return cfg
+
+
+def run(args: argparse.Namespace) -> int:
+    from vitfly.workflows.reproduce import run_reproduce
+
+    run_reproduce(config_from_args(args), args.stages, progress=not args.no_progress)
     return 0
