@@ -69,11 +69,15 @@ def load_cfg(args: argparse.Namespace):
     return load_reproduce_config(args.config, args.preset, {"out": args.run_dir, "data": args.data})
 
 
-def parse_label(label: str) -> tuple[str, bool]:
-    model, _, kind = label.rpartition("-")
-    if kind not in ("state", "nostate") or not model:
-        raise SystemExit(f"--runs: {label!r}: expected MODEL-state or MODEL-nostate")
-    return model, kind == "state"
+def parse_label(label: str):
+    """A run's folder name (MODEL-state, MODEL-nostate, with -s<seed> for another training draw) as a Run."""
+    from vitfly.errors import VitflyError
+    from vitfly.workflows.reproduce_config import Run
+
+    try:
+        return Run.parse(label)
+    except VitflyError as err:
+        raise SystemExit(f"--runs: {err}") from None
 
 
 def run_dir(cfg, label: str) -> Path:
@@ -97,10 +101,11 @@ def train_one(args: argparse.Namespace) -> int:
     from vitfly.workflows.reproduce_config import train_callbacks, train_stage
 
     cfg = load_cfg(args)
-    model, use_state = parse_label(args.train_one)
-    stage, callbacks = train_callbacks(train_stage(cfg, model, use_state), cfg, "reproduce config")
+    run = parse_label(args.train_one)
+    stage, callbacks = train_callbacks(train_stage(cfg, run.model, run.use_state, seed=run.seed), cfg,
+                                       "reproduce config")
     slot = SlotStop(args.stop_at, args.stop_after_epochs, args.epoch_s)
-    train_dir = cfg.train_dir(model, use_state)
+    train_dir = cfg.train_dir(*run)
     fit_before_s = _fit_seconds(train_dir)
     t0 = time.perf_counter()
     try:
@@ -302,7 +307,9 @@ def stage_run(cfg, label: str, ended: tuple, resumed: dict, data_hash: str, args
         entry.update(state="no progress", note="no epoch finished this slot; nothing returned")
         return entry, None
     epoch_s = wall_s / (after - before)  # startup included: errs long, so the next slot stops in time
-    marker = {**marker, "epochs": after, "max_epochs": train_stage(cfg, *parse_label(label)).max_epochs,
+    run = parse_label(label)
+    max_epochs = train_stage(cfg, run.model, run.use_state, seed=run.seed).max_epochs
+    marker = {**marker, "epochs": after, "max_epochs": max_epochs,
               "dataset_hash": data_hash, "moments": args.moments, "epoch_s": round(epoch_s, 1),
               "slots": [*marker["slots"], slot]}
     entry.update(state="unfinished", max_epochs=marker["max_epochs"])
@@ -359,8 +366,14 @@ def train(args: argparse.Namespace) -> int:
     labels = list(dict.fromkeys([*args.runs, *resumed]))
     if not labels:
         raise SystemExit("train: nothing to train; name runs with --runs or resume states with --resume-from")
+    from vitfly.workflows.reproduce_config import runs
+
+    known = {r.dir_name for r in runs(cfg)}
     for label in labels:
         parse_label(label)
+        if label not in known:
+            raise SystemExit(f"train: {label} is not a run of the {args.preset} preset (train.models, "
+                             f"train.nostate_models, train.draws); its runs: {', '.join(sorted(known))}")
     report: dict = {"preset": args.preset, "runs": {}, "resumed": {k: str(v[0]) for k, v in resumed.items()}}
     data_hash = collect_data(cfg, args, report)
     error = report.get("error") or (data_hash and wrong_data(resumed, data_hash))
@@ -485,10 +498,9 @@ def run_states(cfg) -> list[tuple[str, str, Path | None, int]]:
     from vitfly.workflows.reproduce_config import runs, train_stage
 
     rows = []
-    for model, use_state in runs(cfg):
-        label = f"{model}-{'state' if use_state else 'nostate'}"
-        d = cfg.train_dir(model, use_state)
-        n = train_stage(cfg, model, use_state).max_epochs
+    for run in runs(cfg):
+        label, d = run.dir_name, cfg.train_dir(*run)
+        n = train_stage(cfg, run.model, run.use_state, seed=run.seed).max_epochs
         if (d / "done.json").exists():
             on = json.loads((d / "done.json").read_text()).get("trained_on")
             rows.append((label, "done" + (f" ({on['epochs']} epochs on {on['device']})" if on else ""), None, 0))

@@ -19,7 +19,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="only these architectures (trained with and, where the config says, without state)")
     parser.add_argument("--train-seed", type=int, metavar="N",
                         help="train every run with this seed (its validation split and initialisation) instead of "
-                        "the recipes' own; needs --out, so that runs of two seeds never share a directory")
+                        "the recipes' own, and no train.draws; needs --out, so that runs of two seeds never share a "
+                        "directory")
     parser.add_argument("--stages", nargs="+", choices=STAGES, metavar="STAGE",
                         help=f"only these stages (run in the order {', '.join(STAGES)}); None: all of them")
     parser.add_argument("--no-progress", action="store_true", help="no progress bars")
@@ -37,14 +38,17 @@ def config_from_args(args: argparse.Namespace):
         if args.out is None:
             raise VitflyError(f"--train-seed {args.train_seed}: give --out too (the preset's {cfg.out} holds the "
                               "runs of the recipes' own seeds)")
-        t = cfg.train
-        cfg = dataclasses.replace(cfg, train=dataclasses.replace(t, overrides={**t.overrides, "seed": args.train_seed}))
+        t = cfg.train  # another copy of the study: its own runs, no draws
+        cfg = dataclasses.replace(cfg, train=dataclasses.replace(t, overrides={**t.overrides, "seed": args.train_seed},
+                                                                 draws={}))
     if args.models:
         t = cfg.train
         cfg = dataclasses.replace(cfg, train=dataclasses.replace(
             t, models=list(args.models), nostate_models=[m for m in t.nostate_models if m in args.models],
-            publish_models=[m for m in t.publish_models if m in args.models]))
-        check_config(cfg, "--models")
+            publish_models=[m for m in t.publish_models if m in args.models],
+            draws={run: seeds for run, seeds in t.draws.items() if run.removesuffix("-nostate") in args.models}))
+    if args.models or args.train_seed is not None:
+        check_config(cfg, "--models" if args.models else "--train-seed")
     return cfg
 
 

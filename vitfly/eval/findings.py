@@ -4,7 +4,8 @@ trial counts and 95 % intervals, and a verdict by a stated rule.
 Inputs are summary rows (``vitfly.eval.aggregate.summarize``) of the reproduce study's sweeps: ``spheres``
 and ``trees`` (3-7 m/s, learned models with the state input, expert, straight), ``window`` (3 m/s) and
 ``ablation`` (models with and without the state input). Policy labels are registry names, ``<name>-nostate``
-for the no-state runs, ``expert`` and ``straight``.
+for the no-state runs, ``expert`` and ``straight``; another training draw of a run (another seed) is the run's
+label and ``-s<seed>`` (``draw_label``). These findings read each run's own draw, the unsuffixed label.
 
 Intervals: success rates get the 95 % Wilson score interval (``scipy.stats.binomtest``); means (collisions
 per trial, energy, acceleration) get mean +- 1.96 standard errors (normal approximation).
@@ -16,6 +17,7 @@ finding says its rule in ``rule`` and the comparison that decided in ``why``.
 from __future__ import annotations
 
 import math
+import re
 from collections.abc import Sequence
 from dataclasses import asdict, dataclass
 
@@ -26,6 +28,7 @@ from vitfly.eval.paper_tables import MODEL_LABELS, paper_success
 LEARNED = ("convnet", "lstmnet", "unet_lstm", "vit", "vit_lstm", "resnet18")
 VIT_MODELS = ("vit", "vit_lstm")
 NOSTATE_SUFFIX = "-nostate"
+DRAW_PATTERN = re.compile(r"^(?P<run>.+)-s(?P<seed>\d+)$")  # convnet-s1, vit_lstm-nostate-s2
 PAPER_TREES_7MPS_SUCCESS = {"vit": 80, "vit_lstm": 70}  # paper, supplementary: Trees success at 7 m/s (%)
 # paper, results text: time in collision per obstacle in Spheres (s) at 3 and 7 m/s
 PAPER_EXPERT_TIME_IN_COLLISION_S = {3.0: 1.20, 7.0: 0.45}
@@ -56,9 +59,23 @@ def wilson(successes: int, trials: int, confidence: float = 0.95) -> tuple[float
     return float(ci.low), float(ci.high)
 
 
+def draw_label(run: str, seed: int) -> str:
+    """The policy label of another training draw of ``run`` (a label such as ``convnet-nostate``), with ``seed``."""
+    return f"{run}-s{int(seed)}"
+
+
+def split_draw(policy: str) -> tuple[str, int | None]:
+    """(run label, seed) of a draw's label; (``policy``, None) for any other label."""
+    m = DRAW_PATTERN.match(policy)
+    return (m["run"], int(m["seed"])) if m else (policy, None)
+
+
 def label(model: str) -> str:
-    base = model[: -len(NOSTATE_SUFFIX)] if model.endswith(NOSTATE_SUFFIX) else model
-    return MODEL_LABELS.get(base, base) + (" (no state)" if base != model else "")
+    """A policy label for people: ConvNet, ViT+LSTM (no state), ConvNet, seed 3."""
+    run, seed = split_draw(model)
+    base = run[: -len(NOSTATE_SUFFIX)] if run.endswith(NOSTATE_SUFFIX) else run
+    text = MODEL_LABELS.get(base, base) + (" (no state)" if base != run else "")
+    return text if seed is None else f"{text}, seed {seed}"
 
 
 class Table:

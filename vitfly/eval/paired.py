@@ -16,6 +16,18 @@ with both of its policies' trials, so the interval respects both the pairing and
 (which McNemar's test, assuming independent pairs, would not); one method serves skewed counts and continuous
 metrics alike, with no normal approximation.
 
+Training draws. A model trained again with another seed flies differently (the laptop study's ConvNet: 21-59 %
+pooled success over five seeds), so one training per model ranks trainings, not architectures. Where a policy
+has several draws (``draws``: policy -> the labels of its draws), the difference is between the draws' means,
+and its interval comes from a two-level bootstrap: each resample draws each policy's training draws with
+replacement (independently: draws of two models are not paired), then the scenes with replacement (shared by
+both policies: the pairing holds), percentile interval (BCa's jackknife has no two-level form). Resampling n
+draws narrows the spread of their mean by (n - 1) / n, which matters at the 2-5 draws a study can afford, so
+each policy's draws are first moved away from their mean by sqrt(n / (n - 1)) (``spread_draws``; a success
+interval is then clipped to [-1, 1]). ``scripts/paired_calibration.py`` measures how often intervals decide
+between two networks that are equal in expectation. A policy with one draw adds no training noise to the
+interval, so a comparison is only as sure about training as its draws allow.
+
 A difference is *decided* when its interval excludes 0. ``verdict`` says which policy is better, or
 ``cannot tell``; the interval's half-width is the smallest difference the study could have told apart.
 """
@@ -26,7 +38,7 @@ import itertools
 import math
 import warnings
 from collections import defaultdict
-from collections.abc import Iterable, Sequence
+from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import asdict, dataclass
 
 import numpy as np
@@ -71,6 +83,8 @@ class PairedDifference:
     a_only: int | None = None
     b_only: int | None = None
     mcnemar_p: float | None = None
+    draws_a: int = 1  # training draws pooled into a (and b): the interval resamples them
+    draws_b: int = 1
 
     @property
     def decided(self) -> bool:
@@ -94,6 +108,8 @@ class PairedDifference:
         d = 0 if self.metric in OUTCOMES else digits
         body = f"{scale * self.diff:+.{d}f}{unit} [{scale * self.low:+.{d}f}, {scale * self.high:+.{d}f}]"
         extra = f", McNemar p={self.mcnemar_p:.2g}" if self.mcnemar_p is not None else ""
+        if self.draws_a > 1 or self.draws_b > 1:
+            extra += f", {self.draws_a} vs {self.draws_b} draws"
         return f"{body}, {self.pairs} pairs{extra}"
 
     def to_dict(self) -> dict:
@@ -128,6 +144,59 @@ def pairs(records: Iterable[TrialRecord], a: str, b: str, env: str, metric: str,
     va = np.array([values[a][k] for k in keys], dtype=np.float64)
     vb = np.array([values[b][k] for k in keys], dtype=np.float64)
     return (np.array([k[0] for k in keys], dtype=np.int64), np.array([k[1] for k in keys]), va, vb)
+
+
+def draw_pairs(records: Iterable[TrialRecord], a: Sequence[str], b: Sequence[str], env: str, metric: str,
+               speeds: Sequence[float] | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Matched trials of the draws ``a`` and ``b`` (labels): (scene seeds, speeds, values of a's draws (one row
+    each), values of b's draws), one column per (scene seed, speed) that every draw flew with the metric defined."""
+    wanted = None if speeds is None else {float(s) for s in speeds}
+    labels = [*a, *b]
+    values: dict[str, dict[tuple[int, float], float]] = {p: {} for p in labels}
+    for rec in records:
+        if rec.env == env and rec.policy in values and (wanted is None or float(rec.speed) in wanted):
+            values[rec.policy][(rec.scene_seed, float(rec.speed))] = metric_value(rec, metric)
+    shared = set.intersection(*(set(values[p]) for p in labels))
+    keys = sorted(k for k in shared if all(math.isfinite(values[p][k]) for p in labels))
+    rows = np.array([[values[p][k] for k in keys] for p in labels], dtype=np.float64).reshape(len(labels), len(keys))
+    return (np.array([k[0] for k in keys], dtype=np.int64), np.array([k[1] for k in keys], dtype=np.float64),
+            rows[: len(a)], rows[len(a):])
+
+
+def spread_draws(sums: np.ndarray) -> np.ndarray:
+    """Draws (rows) moved away from their mean by sqrt(n / (n - 1)), so that resampling n of them varies their mean
+    as much as their unbiased variance says (plain resampling narrows it by (n - 1) / n); one draw is left as is."""
+    n = len(sums)
+    if n < 2:
+        return sums
+    mean = sums.mean(axis=0, keepdims=True)
+    return mean + math.sqrt(n / (n - 1)) * (sums - mean)
+
+
+def two_level_bootstrap_interval(scene: np.ndarray, va: np.ndarray, vb: np.ndarray, confidence: float = CONFIDENCE,
+                                 resamples: int = RESAMPLES, seed: int = 0, spread: bool = True) -> tuple[float, float]:
+    """Percentile interval of mean(a's draws) - mean(b's draws) per pair, resampling each policy's draws (rows of
+    ``va``, ``vb``, spread by ``spread_draws`` unless ``spread`` is False) and the scenes (columns grouped by
+    ``scene``; all pairs of a drawn scene kept)."""
+    ids, column_scene = np.unique(scene, return_inverse=True)
+    counts = np.bincount(column_scene, minlength=len(ids)).astype(np.float64)
+    # per draw and scene: the sum of its pairs' values
+    sum_a = np.stack([np.bincount(column_scene, weights=row, minlength=len(ids)) for row in va])
+    sum_b = np.stack([np.bincount(column_scene, weights=row, minlength=len(ids)) for row in vb])
+    if spread:
+        sum_a, sum_b = spread_draws(sum_a), spread_draws(sum_b)
+    rng = np.random.default_rng(seed)
+    stats = []
+    for start in range(0, resamples, 2000):  # chunks: (chunk, scenes) arrays stay small
+        n = min(2000, resamples - start)
+        # times each draw (each scene) is drawn; integer weights keep 0/1 sums exact, so equal draws give exactly 0
+        times_a = rng.multinomial(len(va), np.full(len(va), 1 / len(va)), size=n)
+        times_b = rng.multinomial(len(vb), np.full(len(vb), 1 / len(vb)), size=n)
+        times_s = rng.multinomial(len(ids), np.full(len(ids), 1 / len(ids)), size=n)
+        per_scene = len(vb) * (times_a @ sum_a) - len(va) * (times_b @ sum_b)
+        stats.append((per_scene * times_s).sum(axis=1) / (len(va) * len(vb) * (times_s @ counts)))
+    low, high = np.quantile(np.concatenate(stats), [(1 - confidence) / 2, (1 + confidence) / 2])
+    return float(low), float(high)
 
 
 def scene_bootstrap_interval(scene: np.ndarray, diff: np.ndarray, confidence: float = CONFIDENCE,
@@ -196,10 +265,17 @@ def mcnemar_interval(a_only: int, b_only: int, pairs: int, confidence: float = C
 
 def paired_difference(records: Iterable[TrialRecord], a: str, b: str, env: str, metric: str = "success",
                       speeds: Sequence[float] | None = None, confidence: float = CONFIDENCE,
-                      resamples: int = RESAMPLES, seed: int = 0) -> PairedDifference | None:
-    """``a`` minus ``b`` on ``metric`` in ``env`` (over ``speeds``, default all both flew); None without pairs."""
+                      resamples: int = RESAMPLES, seed: int = 0,
+                      draws: Mapping[str, Sequence[str]] | None = None) -> PairedDifference | None:
+    """``a`` minus ``b`` on ``metric`` in ``env`` (over ``speeds``, default all both flew); None without pairs.
+
+    ``draws``: policy -> the labels of its training draws (its own label among them); a policy with several is
+    compared by its draws' mean, with the two-level interval of the module docstring."""
     if metric not in HIGHER_IS_BETTER:
         raise VitflyError(f"paired metric {metric!r}: expected one of {', '.join(METRICS)}")
+    draws_a, draws_b = list((draws or {}).get(a) or [a]), list((draws or {}).get(b) or [b])
+    if len(draws_a) > 1 or len(draws_b) > 1:
+        return _draws_difference(records, a, b, draws_a, draws_b, env, metric, speeds, confidence, resamples, seed)
     scene, speed, va, vb = pairs(records, a, b, env, metric, speeds)
     if len(va) == 0:
         return None
@@ -215,6 +291,21 @@ def paired_difference(records: Iterable[TrialRecord], a: str, b: str, env: str, 
     return PairedDifference(metric, a, b, env, tuple(sorted(set(speed.tolist()))), len(va), len(set(scene.tolist())),
                             float(va.mean()), float(vb.mean()), float((va - vb).mean()), low, high,
                             a_only, b_only, p)
+
+
+def _draws_difference(records: Iterable[TrialRecord], a: str, b: str, draws_a: list[str], draws_b: list[str],
+                      env: str, metric: str, speeds: Sequence[float] | None, confidence: float, resamples: int,
+                      seed: int) -> PairedDifference | None:
+    scene, speed, va, vb = draw_pairs(records, draws_a, draws_b, env, metric, speeds)
+    if va.shape[1] == 0:
+        return None
+    diff = float(va.mean() - vb.mean())
+    low, high = two_level_bootstrap_interval(scene, va, vb, confidence, resamples, seed)
+    if metric in OUTCOMES:  # spread draws can reach past what a success difference can be
+        low, high = max(low, -1.0), min(high, 1.0)
+    return PairedDifference(metric, a, b, env, tuple(sorted(set(speed.tolist()))), va.shape[1],
+                            len(set(scene.tolist())), float(va.mean()), float(vb.mean()), diff, low, high,
+                            draws_a=len(draws_a), draws_b=len(draws_b))
 
 
 PAIRED_CSV_METRICS = ("success", "collisions")

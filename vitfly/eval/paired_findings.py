@@ -24,7 +24,7 @@ Inputs: trial records of each sweep (``spheres``, ``trees``, ``window``, ``ablat
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 
 from vitfly.eval.findings import LEARNED, NOSTATE_SUFFIX, VIT_MODELS, label
@@ -32,6 +32,7 @@ from vitfly.eval.paired import PairedDifference, claims_verdict, paired_differen
 from vitfly.eval.records import TrialRecord
 
 NOT_FLOWN = "the policies were not flown on shared scenes"
+Draws = Mapping[str, Sequence[str]] | None  # policy -> the labels of its training draws (vitfly.eval.paired)
 PAIRED_VERDICTS = ("reproduced", "partly", "not", "cannot tell", "n/a")
 METRIC_WORDS = {"success": "success", "success_strict": "strict success", "collisions": "collisions per trial",
                 "time_in_collision": "time in collision (s)", "energy_cost": "energy cost (1/s²)",
@@ -69,38 +70,44 @@ def _decide(diffs: list[PairedDifference]) -> tuple[str, str]:
                            for d in diffs])
 
 
-def _rule(scope: str) -> str:
-    return (f"{scope}, paired over scenes: each claim 'A better than B' decided when the 95 % interval of A - B "
+def _over(draws: Draws) -> str:
+    several = any(len(v) > 1 for v in (draws or {}).values())
+    return "paired over scenes and training draws (a model by its draws' mean)" if several else "paired over scenes"
+
+
+def _rule(scope: str, draws: Draws = None) -> str:
+    return (f"{scope}, {_over(draws)}: each claim 'A better than B' decided when the 95 % interval of A - B "
             "excludes 0; all for reproduced, any against not, some for partly, none decided cannot tell")
 
 
 def _claims(key: str, claim: str, metric: str, records: Sequence[TrialRecord], pairs: list[tuple[str, str]],
-            env: str, speeds: Sequence[float] | None, scope: str) -> PairedFinding:
+            env: str, speeds: Sequence[float] | None, scope: str, draws: Draws = None) -> PairedFinding:
     """A finding made of claims "a better than b" for each of ``pairs``, decided by the rule above."""
-    rule = _rule(f"{METRIC_WORDS[metric]} in {env} ({scope})")
-    diffs = [d for a, b in pairs if (d := paired_difference(records, a, b, env, metric, speeds)) is not None]
+    rule = _rule(f"{METRIC_WORDS[metric]} in {env} ({scope})", draws)
+    diffs = [d for a, b in pairs
+             if (d := paired_difference(records, a, b, env, metric, speeds, draws=draws)) is not None]
     if not diffs:
         return PairedFinding(key, claim, metric, rule, "n/a", why=NOT_FLOWN)
     verdict, why = _decide(diffs)
     return PairedFinding(key, claim, metric, rule, verdict, diffs, why)
 
 
-def lowest_collisions_fast(spheres: Sequence[TrialRecord]) -> PairedFinding:
+def lowest_collisions_fast(spheres: Sequence[TrialRecord], draws: Draws = None) -> PairedFinding:
     speeds = [s for s in (6.0, 7.0) if s in _speeds_of(spheres, "vit_lstm")]
     others = [m for m in _learned(spheres) if m != "vit_lstm"]
     return _claims("lowest_collisions_6_7", "ViT+LSTM has the fewest collisions in Spheres at 6 and 7 m/s",
                    "collisions", spheres, [("vit_lstm", m) for m in others] if speeds else [], "spheres", speeds,
-                   "6 and 7 m/s pooled")
+                   "6 and 7 m/s pooled", draws)
 
 
-def beats_expert_fast(spheres: Sequence[TrialRecord]) -> PairedFinding:
+def beats_expert_fast(spheres: Sequence[TrialRecord], draws: Draws = None) -> PairedFinding:
     key, claim = "beats_expert_above_5", "ViT+LSTM is the only model with fewer collisions than the expert past 5 m/s"
-    rule = ("collisions per trial in spheres above 5 m/s, paired over scenes: ViT+LSTM decided below the expert "
+    rule = (f"collisions per trial in spheres above 5 m/s, {_over(draws)}: ViT+LSTM decided below the expert "
             "and no other learned model decided below it reproduced; ViT+LSTM and others too partly; ViT+LSTM "
             "decided above the expert not; else cannot tell")
     speeds = [s for s in _speeds_of(spheres, "expert") if s > 5.0]
     diffs = [d for m in _learned(spheres) if speeds and
-             (d := paired_difference(spheres, m, "expert", "spheres", "collisions", speeds)) is not None]
+             (d := paired_difference(spheres, m, "expert", "spheres", "collisions", speeds, draws=draws)) is not None]
     mine = next((d for d in diffs if d.a == "vit_lstm"), None)
     if mine is None:
         return PairedFinding(key, claim, "collisions", rule, "n/a", why="ViT+LSTM or the expert not flown above 5 m/s")
@@ -115,52 +122,55 @@ def beats_expert_fast(spheres: Sequence[TrialRecord]) -> PairedFinding:
     return PairedFinding(key, claim, "collisions", rule, verdict, diffs, why)
 
 
-def less_time_in_collision_than_expert(spheres: Sequence[TrialRecord]) -> PairedFinding:
+def less_time_in_collision_than_expert(spheres: Sequence[TrialRecord], draws: Draws = None) -> PairedFinding:
     speeds = [s for s in (3.0, 7.0) if s in _speeds_of(spheres, "expert")]
     return _claims("time_in_collision", "Learned models spend far less time in collision per obstacle than the expert",
                    "time_in_collision", spheres, [(m, "expert") for m in _learned(spheres)] if speeds else [],
-                   "spheres", speeds, "3 and 7 m/s pooled")
+                   "spheres", speeds, "3 and 7 m/s pooled", draws)
 
 
-def vit_best_in_trees(trees: Sequence[TrialRecord]) -> PairedFinding:
+def vit_best_in_trees(trees: Sequence[TrialRecord], draws: Draws = None) -> PairedFinding:
     learned = _learned(trees)
     pairs = [(v, m) for v in VIT_MODELS if v in learned for m in learned if m not in VIT_MODELS]
     return _claims("vit_best_trees", "The ViT models generalise best to the unseen Trees", "collisions", trees,
-                   pairs, "trees", None, "all speeds pooled")
+                   pairs, "trees", None, "all speeds pooled", draws)
 
 
-def only_vit_through_window(window: Sequence[TrialRecord]) -> PairedFinding:
+def only_vit_through_window(window: Sequence[TrialRecord], draws: Draws = None) -> PairedFinding:
     learned = _learned(window)
     pairs = [(v, m) for v in VIT_MODELS if v in learned for m in learned if m not in VIT_MODELS]
     return _claims("window_only_vit", "Only the ViT models fly through the window (3 m/s)", "success_strict", window,
-                   pairs, "window", [3.0], "3 m/s")
+                   pairs, "window", [3.0], "3 m/s", draws)
 
 
-def lowest_energy(spheres: Sequence[TrialRecord]) -> PairedFinding:
+def lowest_energy(spheres: Sequence[TrialRecord], draws: Draws = None) -> PairedFinding:
     others = [m for m in _learned(spheres) if m != "vit_lstm"]
     return _claims("lowest_energy", "ViT+LSTM has the lowest energy cost in Spheres at every speed (3-7 m/s)",
-                   "energy_cost", spheres, [("vit_lstm", m) for m in others], "spheres", None, "all speeds pooled")
+                   "energy_cost", spheres, [("vit_lstm", m) for m in others], "spheres", None, "all speeds pooled",
+                   draws)
 
 
-def recurrence_lowers_acceleration(spheres: Sequence[TrialRecord], trees: Sequence[TrialRecord]) -> PairedFinding:
-    parts = [_claims("recurrence_acc", "", "cmd_acc", recs, [("vit_lstm", "vit")], env, None, "all speeds pooled")
+def recurrence_lowers_acceleration(spheres: Sequence[TrialRecord], trees: Sequence[TrialRecord],
+                                   draws: Draws = None) -> PairedFinding:
+    parts = [_claims("recurrence_acc", "", "cmd_acc", recs, [("vit_lstm", "vit")], env, None, "all speeds pooled",
+                     draws)
              for env, recs in (("spheres", spheres), ("trees", trees))]
     return _merge("recurrence_acc", "Recurrence lowers ViT's commanded acceleration (ViT+LSTM below ViT)", "cmd_acc",
-                  parts, "commanded acceleration in spheres and in trees (all speeds pooled)")
+                  parts, "commanded acceleration in spheres and in trees (all speeds pooled)", draws)
 
 
-def state_helps_vit_lstm(ablation: Sequence[TrialRecord]) -> PairedFinding:
+def state_helps_vit_lstm(ablation: Sequence[TrialRecord], draws: Draws = None) -> PairedFinding:
     parts = [_claims("state_helps_vit_lstm", "", "success", ablation, [("vit_lstm", "vit_lstm" + NOSTATE_SUFFIX)],
-                     env, None, "ablation speeds pooled") for env in ("spheres", "trees")]
+                     env, None, "ablation speeds pooled", draws) for env in ("spheres", "trees")]
     return _merge("state_helps_vit_lstm", "The state input (speed, attitude) helps ViT+LSTM", "success", parts,
-                  "success in the ablation's spheres and trees (its speeds pooled)")
+                  "success in the ablation's spheres and trees (its speeds pooled)", draws)
 
 
-def resnet_no_better(spheres: Sequence[TrialRecord]) -> PairedFinding:
+def resnet_no_better(spheres: Sequence[TrialRecord], draws: Draws = None) -> PairedFinding:
     key, claim = "resnet_vs_convnet", "ResNet-18 is no better than ConvNet"
-    rule = ("success in spheres (all speeds pooled), paired over scenes: ResNet-18 - ConvNet decided above 0 not; "
+    rule = (f"success in spheres (all speeds pooled), {_over(draws)}: ResNet-18 - ConvNet decided above 0 not; "
             "decided below 0 or undecided reproduced, with the largest lead the interval allows")
-    d = paired_difference(spheres, "resnet18", "convnet", "spheres", "success")
+    d = paired_difference(spheres, "resnet18", "convnet", "spheres", "success", draws=draws)
     if d is None:
         return PairedFinding(key, claim, "success", rule, "n/a", why="ResNet-18 and ConvNet not flown on shared scenes")
     verdict = "not" if d.better == "resnet18" else "reproduced"
@@ -168,7 +178,7 @@ def resnet_no_better(spheres: Sequence[TrialRecord]) -> PairedFinding:
     return PairedFinding(key, claim, "success", rule, verdict, [d], why)
 
 
-def modular_baselines(modular: Sequence[TrialRecord]) -> PairedFinding:
+def modular_baselines(modular: Sequence[TrialRecord], draws: Draws = None) -> PairedFinding:
     """ViT+LSTM against every modular planner (``modular:NAME`` in the records' policy source) flown on the same
     spheres scenes, all speeds pooled: two claims per planner, ViT+LSTM the better on the paper's success (no
     collision) and on the speed error |actual forward speed / desired - 1|."""
@@ -177,31 +187,34 @@ def modular_baselines(modular: Sequence[TrialRecord]) -> PairedFinding:
              "the modular methods do not")
     planners = sorted({r.policy for r in modular if str(r.extra.get("policy_source", "")).startswith("modular:")})
     pairs = [("vit_lstm", p) for p in planners]
-    parts = [_claims(key, claim, metric, modular, pairs, "spheres", None, "all speeds pooled")
+    parts = [_claims(key, claim, metric, modular, pairs, "spheres", None, "all speeds pooled", draws)
              for metric in ("success", "speed_error")]
     return _merge(key, claim, "success", parts, "success and speed error in spheres against each modular planner "
-                  "(all speeds pooled)")
+                  "(all speeds pooled)", draws)
 
 
-def _merge(key: str, claim: str, metric: str, parts: list[PairedFinding], scope: str) -> PairedFinding:
+def _merge(key: str, claim: str, metric: str, parts: list[PairedFinding], scope: str,
+           draws: Draws = None) -> PairedFinding:
     """One finding from the claims of several environments, decided by the same rule over all of them."""
     diffs = [d for p in parts for d in p.comparisons]
     if not diffs:
-        return PairedFinding(key, claim, metric, _rule(scope), "n/a", why=NOT_FLOWN)
+        return PairedFinding(key, claim, metric, _rule(scope, draws), "n/a", why=NOT_FLOWN)
     verdict, why = _decide(diffs)
-    return PairedFinding(key, claim, metric, _rule(scope), verdict, diffs, why)
+    return PairedFinding(key, claim, metric, _rule(scope, draws), verdict, diffs, why)
 
 
 def paired_findings(spheres: Sequence[TrialRecord] | None, trees: Sequence[TrialRecord] | None,
                     window: Sequence[TrialRecord] | None,
                     ablation: Sequence[TrialRecord] | None,
-                    modular: Sequence[TrialRecord] | None = None) -> list[PairedFinding]:
+                    modular: Sequence[TrialRecord] | None = None, draws: Draws = None) -> list[PairedFinding]:
     """Every paired finding, in the order of the unpaired table (``vitfly.eval.findings.paper_findings``), then the
-    comparison with the modular baselines (``modular``: the records of that sweep)."""
-    s, t, w, a = spheres or [], trees or [], window or [], ablation or []
-    return [lowest_collisions_fast(s), beats_expert_fast(s), less_time_in_collision_than_expert(s),
-            vit_best_in_trees(t), only_vit_through_window(w), lowest_energy(s), recurrence_lowers_acceleration(s, t),
-            state_helps_vit_lstm(a), resnet_no_better(s), modular_baselines(modular or [])]
+    comparison with the modular baselines (``modular``: the records of that sweep). ``draws``: run label -> the
+    labels of its training draws; such a run is compared by its draws' mean (``vitfly.eval.paired``)."""
+    s, t, w, a, d = spheres or [], trees or [], window or [], ablation or [], draws
+    return [lowest_collisions_fast(s, d), beats_expert_fast(s, d), less_time_in_collision_than_expert(s, d),
+            vit_best_in_trees(t, d), only_vit_through_window(w, d), lowest_energy(s, d),
+            recurrence_lowers_acceleration(s, t, d), state_helps_vit_lstm(a, d), resnet_no_better(s, d),
+            modular_baselines(modular or [], d)]
 
 
 def _policy(name: str) -> str:
@@ -227,10 +240,12 @@ def paired_findings_markdown(findings: Sequence[PairedFinding]) -> str:
 
 
 def lead_table(records: Sequence[TrialRecord], env: str, leader: str = "vit_lstm",
-               metric: str = "success") -> str:
+               metric: str = "success", draws: Draws = None) -> str:
     """``leader`` minus every other policy of ``env`` on ``metric``, per speed and pooled, with paired intervals
-    (the learned models, the expert and straight flight, then any other policy, e.g. the modular planners)."""
-    present = sorted({r.policy for r in records})
+    (the learned models, the expert and straight flight, then any other policy, e.g. the modular planners).
+    ``draws``: a run with several training draws is one row, by its draws' mean; its draws get no rows."""
+    extra_draws = {q for run, labels in (draws or {}).items() for q in labels if q != run}
+    present = sorted({r.policy for r in records} - extra_draws)
     known = (*LEARNED, "expert", "straight")
     policies = [p for p in (*known, *(q for q in present if q not in known)) if p != leader and p in present]
     speeds = _speeds_of(records, leader)
@@ -243,7 +258,7 @@ def lead_table(records: Sequence[TrialRecord], env: str, leader: str = "vit_lstm
     for p in policies:
         cells = []
         for sp in [[s] for s in speeds] + ([None] if len(speeds) > 1 else []):
-            d = paired_difference(records, leader, p, env, metric, sp)
+            d = paired_difference(records, leader, p, env, metric, sp, draws=draws)
             cells.append("-" if d is None else f"{d.text()}{' *' if d.decided else ''}")
         lines.append(f"| {_policy(p)} | " + " | ".join(cells) + " |")
     return "\n".join(lines) + "\n"

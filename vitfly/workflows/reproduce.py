@@ -6,7 +6,9 @@ Stages (each resumes after a kill; a rerun skips what is done with the same sett
 2. ``train``: every model with the state input and the no-state ones, each from its recipe
    ``configs/fit/<model>.yaml`` with the preset's overrides (``stage_train``: resumes from
    ``last.ckpt``), into ``OUT/train/<model>-state`` and ``OUT/train/<model>-nostate``; with
-   ``train.publish_weights`` each finished state model is published as ``pretrained:<model>``;
+   ``train.publish_weights`` each finished state model is published as ``pretrained:<model>``; then the other
+   training draws of ``train.draws`` (another seed each) into ``OUT/train/<model>-state-s<seed>``, flown in
+   every sweep of their run as ``<run>-s<seed>``;
 3. ``evaluate``: ``OUT/eval/spheres`` and ``OUT/eval/trees`` (every state model, expert, straight, at
    ``evaluate.speeds``), ``OUT/eval/window`` (3 m/s) and ``OUT/eval/ablation`` (with and without state,
    spheres and trees); sweeps resume per trial (``stage_evaluate``);
@@ -32,11 +34,11 @@ from pathlib import Path
 
 from vitfly.atomic import write_text
 from vitfly.errors import VitflyError
-from vitfly.workflows.ablation import run_label
 from vitfly.workflows.pipeline import EvalStage, TrainStage, stage_collect, stage_evaluate, stage_train
 from vitfly.workflows.reproduce_config import (
     STAGES,
     ReproduceConfig,
+    Run,
     done_checkpoint,
     eval_stage,
     modular_stage,
@@ -82,11 +84,13 @@ def _add_cost(train_dir: Path, seconds: float, fit_before_s: float) -> dict:
 
 
 def stage_train_all(cfg: ReproduceConfig, progress: bool = True) -> dict[str, Path]:
-    """Train (or resume, or skip) every run; returns label -> checkpoint. Publishes state models if asked."""
+    """Train (or resume, or skip) every run, then the other draws; returns label -> checkpoint. Publishes the
+    study's own state models if asked."""
     checkpoints = {}
-    for model, use_state in runs(cfg):
-        stage, callbacks = train_callbacks(train_stage(cfg, model, use_state), cfg, "reproduce config")
-        train_dir = cfg.train_dir(model, use_state)
+    for run in runs(cfg):
+        model, use_state = run.model, run.use_state
+        stage, callbacks = train_callbacks(train_stage(cfg, model, use_state, seed=run.seed), cfg, "reproduce config")
+        train_dir = cfg.train_dir(*run)
         marker = train_dir / "done.json"
         before = marker.read_text() if marker.exists() else None
         fit_before_s = _fit_seconds(train_dir)
@@ -95,9 +99,9 @@ def stage_train_all(cfg: ReproduceConfig, progress: bool = True) -> dict[str, Pa
         if marker.read_text() != before:  # it trained (done.json is rewritten only then)
             cost = _add_cost(train_dir, time.perf_counter() - t0, fit_before_s)
             killed = f" ({cost['killed_s'] / 60:.1f} of them in killed sessions)" if cost["killed_s"] else ""
-            print(f"[train] {run_label(model, use_state)}: {cost['wall_s'] / 60:.1f} min of training so far{killed}")
-        checkpoints[run_label(model, use_state)] = ckpt
-        if use_state and cfg.train.publish_weights and model in cfg.train.publish_models:
+            print(f"[train] {run.label}: {cost['wall_s'] / 60:.1f} min of training so far{killed}")
+        checkpoints[run.label] = ckpt
+        if use_state and run.seed is None and cfg.train.publish_weights and model in cfg.train.publish_models:
             publish(cfg, model, ckpt, stage)
     return checkpoints
 
@@ -112,12 +116,12 @@ def trained_checkpoints(cfg: ReproduceConfig) -> dict[str, Path | str]:
             manifest_entry(model, cfg.train.weights_dir)
         return {model: f"pretrained:{model}" for model in cfg.train.models}
     out = {}
-    for model, use_state in runs(cfg):
-        ckpt = done_checkpoint(cfg.train_dir(model, use_state))
+    for run in runs(cfg):
+        ckpt = done_checkpoint(cfg.train_dir(*run))
         if ckpt is None:
-            raise VitflyError(f"{cfg.train_dir(model, use_state)}: {run_label(model, use_state)} is not trained "
-                              "yet; run the train stage first (vitfly reproduce --stages train)")
-        out[run_label(model, use_state)] = ckpt
+            raise VitflyError(f"{cfg.train_dir(*run)}: {run.label} is not trained yet; run the train stage first "
+                              "(vitfly reproduce --stages train)")
+        out[run.label] = ckpt
     return out
 
 
@@ -141,12 +145,15 @@ def publish(cfg: ReproduceConfig, model: str, ckpt: Path, stage: TrainStage) -> 
 
 
 def evaluation_plan(cfg: ReproduceConfig, checkpoints: dict[str, Path]) -> dict[str, tuple[EvalStage, list]]:
-    """Sweep name -> (settings, [(policy, label)]) of the study."""
+    """Sweep name -> (settings, [(policy, label)]) of the study: every draw flies beside its run (the study's own
+    runs first, so an interrupted sweep has them all)."""
     e = cfg.evaluate
-    state = [(str(checkpoints[m]), m) for m in cfg.train.models]
+    every = runs(cfg)
+    state = [(str(checkpoints[r.label]), r.label) for r in every if r.use_state]
     baselines = [(b, None) for b in e.baselines]
-    ablation = [(str(checkpoints[run_label(m, s)]), run_label(m, s)) for m in cfg.train.nostate_models
-                for s in (True, False)]
+    compared = [Run(m, s) for m in cfg.train.nostate_models for s in (True, False)]
+    drawn = [r for r in every if r.seed is not None and r._replace(seed=None) in compared]
+    ablation = [(str(checkpoints[r.label]), r.label) for r in compared + drawn]
     return {
         "spheres": (eval_stage(cfg, ["spheres"], e.speeds, e.spheres_trials), state + baselines),
         "trees": (eval_stage(cfg, ["trees"], e.speeds, e.trees_trials), state + baselines),

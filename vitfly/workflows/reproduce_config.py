@@ -14,12 +14,16 @@ import dataclasses
 import importlib
 import json
 import os
+import re
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import NamedTuple
 
 from vitfly.errors import VitflyError
 from vitfly.eval.config import dataclass_from_dict
+from vitfly.eval.findings import draw_label
 from vitfly.packaged import config_path, read_yaml
+from vitfly.workflows.ablation import run_label
 from vitfly.workflows.pipeline import EvalStage, TrainStage
 
 PAPER_MODELS = ["convnet", "lstmnet", "unet_lstm", "vit", "vit_lstm"]
@@ -41,6 +45,9 @@ class ReproduceTrain:
     publish_weights: bool = False  # publish each finished state model as pretrained:<model>
     publish_models: list[str] = field(default_factory=lambda: list(PAPER_MODELS))
     weights_dir: str | None = None  # None: $VITFLY_WEIGHTS_DIR, else <repository>/weights (a clone; installed: none)
+    draws: dict = field(default_factory=dict)  # run label (convnet, vit_lstm-nostate) -> seeds of more trainings of
+    # that run, each trained into train/<model>-state-s<seed> and flown as <run>-s<seed> beside it; the paired
+    # findings compare such a run by its draws' mean (vitfly.eval.paired)
 
 
 @dataclass
@@ -129,8 +136,9 @@ class ReproduceConfig:
     def out_dir(self) -> Path:
         return Path(self.out)
 
-    def train_dir(self, model: str, use_state: bool) -> Path:
-        return self.out_dir / "train" / (model + ("-state" if use_state else "-nostate"))
+    def train_dir(self, model: str, use_state: bool, seed: int | None = None) -> Path:
+        """``train/<model>-state`` (or ``-nostate``); another training draw's with ``-s<seed>``."""
+        return self.out_dir / "train" / Run(model, use_state, seed).dir_name
 
     def eval_dir(self, name: str) -> Path:
         return self.out_dir / "eval" / name
@@ -194,6 +202,7 @@ def check_config(cfg: ReproduceConfig, source: str) -> None:
     if cfg.paths.repeats < 1 or cfg.paths.jitter_m < 0:
         raise VitflyError(f"{source}: paths.repeats must be >= 1 and paths.jitter_m >= 0")
     check_modular(cfg, source)
+    check_draws(cfg, source)
     for m in cfg.train.models:  # every recipe read (and checked) before anything runs
         train_stage(cfg, m, True, source)
     if t.closed_loop_check is not None:
@@ -301,14 +310,18 @@ def recipe_fields(path: str | Path, model: str) -> dict:
     return out
 
 
-def train_stage(cfg: ReproduceConfig, model: str, use_state: bool, source: str = "reproduce config") -> TrainStage:
-    """Recipe < ``train.overrides`` < ``train.per_model[model]``, as the pipeline's TrainStage. The recipe is
-    ``<train.recipes>/<model>.yaml``; where no such file exists, the shipped config of that name (``configs/fit``
-    is ``fit``)."""
+def train_stage(cfg: ReproduceConfig, model: str, use_state: bool, source: str = "reproduce config", *,
+                seed: int | None = None) -> TrainStage:
+    """Recipe < ``train.overrides`` < ``train.per_model[model]``, as the pipeline's TrainStage; ``seed``: another
+    training draw's (weights' initialisation, data order and train/validation split), else the recipe's. The
+    recipe is ``<train.recipes>/<model>.yaml``; where no such file exists, the shipped config of that name
+    (``configs/fit`` is ``fit``)."""
     recipe = config_path(Path(cfg.train.recipes) / f"{model}.yaml")
     fields = _deep_merge(recipe_fields(recipe, model), cfg.train.overrides)
     fields = _deep_merge(fields, cfg.train.per_model.get(model) or {})
     fields.update(model=model, use_state=use_state)
+    if seed is not None:
+        fields["seed"] = int(seed)
     return dataclass_from_dict(TrainStage, fields, f"{source}: train (recipe {recipe} + overrides) of {model}")
 
 
@@ -352,8 +365,75 @@ def check_train_source(cfg: ReproduceConfig, source: str) -> None:
                           "the state input only; set train.nostate_models: [] (the ablation needs training)")
 
 
-def runs(cfg: ReproduceConfig) -> list[tuple[str, bool]]:
-    return [(m, True) for m in cfg.train.models] + [(m, False) for m in cfg.train.nostate_models]
+class Run(NamedTuple):
+    """One training of the study: a model, with the state input or without, and ``seed`` for another training
+    draw of that run (None: the study's own run, with the recipe's seed)."""
+
+    model: str
+    use_state: bool
+    seed: int | None = None
+
+    @property
+    def run(self) -> str:
+        """The study's run this is (a draw of): ``convnet``, ``convnet-nostate``."""
+        return run_label(self.model, self.use_state)
+
+    @property
+    def label(self) -> str:
+        """The policy label in the sweeps: the run's, and ``-s<seed>`` for another draw."""
+        return self.run if self.seed is None else draw_label(self.run, self.seed)
+
+    @property
+    def dir_name(self) -> str:
+        """The folder under ``train/``: ``convnet-state``, ``convnet-nostate-s2``."""
+        base = self.model + ("-state" if self.use_state else "-nostate")
+        return base if self.seed is None else f"{base}-s{self.seed}"
+
+    @classmethod
+    def parse(cls, name: str) -> Run:
+        """A folder name (``dir_name``) back as a Run; one line naming what is expected otherwise."""
+        m = re.fullmatch(r"(?P<model>.+)-(?P<kind>state|nostate)(-s(?P<seed>\d+))?", name)
+        if not m:
+            raise VitflyError(f"{name!r}: expected MODEL-state or MODEL-nostate, with -s<seed> for another draw")
+        return cls(m["model"], m["kind"] == "state", None if m["seed"] is None else int(m["seed"]))
+
+
+def runs(cfg: ReproduceConfig, with_draws: bool = True) -> list[Run]:
+    """The study's runs (with the state, then without), then the other draws of ``train.draws``."""
+    own = [Run(m, True) for m in cfg.train.models] + [Run(m, False) for m in cfg.train.nostate_models]
+    if not with_draws:
+        return own
+    by_label = {r.run: r for r in own}
+    return own + [by_label[run]._replace(seed=int(seed)) for run, seeds in cfg.train.draws.items() for seed in seeds]
+
+
+def draw_groups(cfg: ReproduceConfig) -> dict[str, list[str]]:
+    """Run label -> the policy labels of its draws (its own first), for the runs with other draws."""
+    groups: dict[str, list[str]] = {}
+    for r in runs(cfg):
+        if r.seed is not None:
+            groups.setdefault(r.run, [r.run]).append(r.label)
+    return groups
+
+
+def check_draws(cfg: ReproduceConfig, source: str) -> None:
+    """``train.draws``: runs the study trains, each with distinct seeds other than the run's own."""
+    own = {r.run: r for r in runs(cfg, with_draws=False)}
+    if not isinstance(cfg.train.draws, dict):
+        raise VitflyError(f"{source}: train.draws must map run labels (e.g. convnet, vit_lstm-nostate) to seeds")
+    for run, seeds in cfg.train.draws.items():
+        if run not in own:
+            raise VitflyError(f"{source}: train.draws has {run!r}, which the study does not train; its runs are "
+                              f"{', '.join(own)}")
+        if cfg.train.source == "pretrained":
+            raise VitflyError(f"{source}: train.draws needs training; train.source is pretrained")
+        seeds_ok = isinstance(seeds, list) and seeds and len(set(seeds)) == len(seeds)
+        if not seeds_ok or not all(isinstance(v, int) and not isinstance(v, bool) and v >= 0 for v in seeds):
+            raise VitflyError(f"{source}: train.draws.{run} must be a list of distinct seeds >= 0, got {seeds!r}")
+        own_seed = train_stage(cfg, own[run].model, own[run].use_state, source).seed
+        if own_seed in seeds:
+            raise VitflyError(f"{source}: train.draws.{run} has the run's own seed {own_seed}: that draw is the run "
+                              "itself")
 
 
 def done_checkpoint(train_dir: Path) -> Path | None:

@@ -12,14 +12,15 @@ import os
 from pathlib import Path
 
 from vitfly.atomic import write_text
-from vitfly.workflows.ablation import run_label
 from vitfly.workflows.reproduce_config import (
     ReproduceConfig,
     done_checkpoint,
+    draw_groups,
     eval_stage,
     paths_plan,
     runs,
     train_frames,
+    train_stage,
 )
 
 
@@ -85,11 +86,11 @@ def _training_table(cfg: ReproduceConfig) -> str:
         return _shipped_table(cfg)
     lines = ["| run | epochs | optimiser steps | training frames | wall time (min) | checkpoint |",
              "|---|---:|---:|---:|---:|---|"]
-    for model, use_state in runs(cfg):
-        d = cfg.train_dir(model, use_state)
+    for run in runs(cfg):
+        d = cfg.train_dir(*run)
         ckpt = done_checkpoint(d)
         if ckpt is None:
-            lines.append(f"| {run_label(model, use_state)} | - | - | - | - | not trained |")
+            lines.append(f"| {run.label} | - | - | - | - | not trained |")
             continue
         cost = json.loads((d / "cost.json").read_text()) if (d / "cost.json").exists() else {}
         frames = train_frames(d, cfg.data)
@@ -103,7 +104,7 @@ def _training_table(cfg: ReproduceConfig) -> str:
             saved = torch.load(d / "checkpoints" / "last.ckpt", map_location="cpu", weights_only=True) \
                 if (d / "checkpoints" / "last.ckpt").exists() else {}
             epochs, steps = saved.get("epoch", -1) + 1, saved.get("global_step", "-")
-        lines.append(f"| {run_label(model, use_state)} | {epochs} | {steps} | {frames if frames is not None else '-'} "
+        lines.append(f"| {run.label} | {epochs} | {steps} | {frames if frames is not None else '-'} "
                      f"| {wall} | {ckpt} |")
     return "\n".join(lines) + "\n"
 
@@ -135,12 +136,14 @@ def stage_report(cfg: ReproduceConfig) -> dict:
     recs: dict[str, list] = {}
     for name in ("spheres", "trees", "window", "ablation", "paths", "modular"):
         rows[name], recs[name] = _summary(cfg.eval_dir(name))
+    draws = draw_groups(cfg)
+    other_draws = {label for run, labels in draws.items() for label in labels if label != run}
     files: dict[str, Path] = {}
-    for env in ("spheres", "trees"):
+    for env in ("spheres", "trees"):  # the figures show each run's own draw (the others: "Training draws")
         if rows[env]:
             files[f"{env}_collision_metrics"] = paper_figures.collision_metrics_figure(
-                rows[env], env, figures / f"{env}_collision_metrics.png")
-    command_rows = (rows["spheres"] or []) + (rows["trees"] or [])
+                [r for r in rows[env] if r["policy"] not in other_draws], env, figures / f"{env}_collision_metrics.png")
+    command_rows = [r for r in (rows["spheres"] or []) + (rows["trees"] or []) if r["policy"] not in other_draws]
     if command_rows:
         files["command_characteristics"] = paper_figures.command_figure(
             command_rows, figures / "command_characteristics.png")
@@ -178,10 +181,11 @@ def stage_report(cfg: ReproduceConfig) -> dict:
         latency_md = latency_markdown(json.loads((out / "latency.json").read_text())["results"])
         write_text(out / "latency.md", latency_md)
     findings = paper_findings(rows["spheres"], rows["trees"], rows["window"], rows["ablation"], lateral)
-    paired = paired_findings(recs["spheres"], recs["trees"], recs["window"], recs["ablation"], recs["modular"])
-    paired_md = paired_markdown(paired, recs)
+    paired = paired_findings(recs["spheres"], recs["trees"], recs["window"], recs["ablation"], recs["modular"],
+                             draws=draws)
+    paired_md = paired_markdown(paired, recs, draws)
     text = results_markdown(cfg, findings_markdown(findings), files, ablation_md, latency_md, lateral, paired_md,
-                            modular_md)
+                            modular_md, draws_markdown(cfg, rows))
     write_text(out / "results.md", text)
     result = {"preset": cfg.preset, "findings": [f.to_dict() for f in findings],
               "paired_findings": [f.to_dict() for f in paired], "modular": _modular_numbers(rows, recs),
@@ -209,20 +213,46 @@ def _modular_numbers(rows: dict, recs: dict) -> dict:
             "replan_latency": replan_latency(modular)}
 
 
-def paired_markdown(paired: list, recs: dict[str, list | None]) -> str:
-    """The paired findings table, then ViT+LSTM's success against every other policy in each sweep."""
+def draws_markdown(cfg: ReproduceConfig, rows: dict[str, list[dict] | None]) -> str:
+    """Each run with other training draws: every draw's seed and its success per sweep, all speeds pooled."""
+    from vitfly.eval.findings import label, split_draw
+    from vitfly.workflows.pipeline import success_by_policy
+
+    draws = draw_groups(cfg)
+    if not draws:
+        return ""
+    sweeps = [name for name in ("spheres", "trees", "window", "ablation") if rows.get(name)]
+    rates = {name: {env: success_by_policy([r for r in rows[name] if r["env"] == env])
+                    for env in sorted({r["env"] for r in rows[name]})} for name in sweeps}
+    columns = [(name, env) for name in sweeps for env in rates[name]]
+    lines = ["| run | seed | " + " | ".join(f"{name}" + (f" ({env})" if env != name else "") for name, env in columns)
+             + " |", "|---|---:|" + "---:|" * len(columns)]
+    by_run = {r.run: r for r in runs(cfg, with_draws=False)}
+    for run, labels in draws.items():
+        for policy in labels:
+            seed = split_draw(policy)[1]
+            if seed is None:
+                seed = train_stage(cfg, by_run[run].model, by_run[run].use_state).seed
+            cells = [f"{100 * rates[n][e][policy]:.0f} %" if policy in rates[n][e] else "-" for n, e in columns]
+            lines.append(f"| {label(run)} | {seed} | " + " | ".join(cells) + " |")
+    return "\n".join(lines) + "\n"
+
+
+def paired_markdown(paired: list, recs: dict[str, list | None], draws: dict[str, list[str]] | None = None) -> str:
+    """The paired findings table, then ViT+LSTM's success against every other policy in each sweep (a run with
+    several training draws by their mean)."""
     from vitfly.eval.paired_findings import lead_table, paired_findings_markdown
 
     parts = [paired_findings_markdown(paired)]
     for sweep in ("spheres", "trees", "window"):
         if recs.get(sweep) and any(r.policy == "vit_lstm" for r in recs[sweep]):
             parts += [f"ViT+LSTM's success minus each policy's in {sweep} (paired over the same scenes; "
-                      "* the 95 % interval excludes 0):", "", lead_table(recs[sweep], sweep)]
+                      "* the 95 % interval excludes 0):", "", lead_table(recs[sweep], sweep, draws=draws)]
     if recs.get("modular") and any(r.policy == "vit_lstm" for r in recs["modular"]):
         for metric, words in (("success", "success"), ("speed_error", "speed error abs(actual / desired - 1)")):
             parts += [f"ViT+LSTM's {words} minus each policy's in the modular comparison (spheres, paired over the "
                       "same scenes; * the 95 % interval excludes 0):", "",
-                      lead_table(recs["modular"], "spheres", metric=metric)]
+                      lead_table(recs["modular"], "spheres", metric=metric, draws=draws)]
     return "\n".join(parts)
 
 
@@ -253,7 +283,8 @@ def _record_closed_loop(cfg: ReproduceConfig, rows: dict) -> None:
 
 
 def results_markdown(cfg: ReproduceConfig, findings_md: str, files: dict[str, Path], ablation_md: str,
-                     latency_md: str, lateral: dict[str, float], paired_md: str = "", modular_md: str = "") -> str:
+                     latency_md: str, lateral: dict[str, float], paired_md: str = "", modular_md: str = "",
+                     draws_md: str = "") -> str:
     e = cfg.evaluate
     rel = {k: os.path.relpath(v, cfg.out_dir) for k, v in files.items()}
     figure_lines = [f"- {k.replace('_', ' ')}: ![{k}]({v})" for k, v in rel.items()]
@@ -279,9 +310,16 @@ def results_markdown(cfg: ReproduceConfig, findings_md: str, files: dict[str, Pa
         "Every policy flies the same scenes, so two policies are compared scene by scene: the difference of a "
         "metric with a 95 % paired-bootstrap interval over scenes (BCa, 10,000 resamples; a resample keeps all "
         "speeds of a drawn scene), and for success McNemar's exact test beside it. A claim is decided when its "
-        "interval excludes 0 (vitfly.eval.paired).",
+        "interval excludes 0 (vitfly.eval.paired)."
+        + (" A run trained more than once (training draws, below) is compared by its draws' mean, with a "
+           "two-level bootstrap: each resample draws each policy's training draws, then the scenes (percentile "
+           "interval). The findings table above reads each run's own draw." if draws_md else ""),
         "",
         paired_md or "(no trials yet)\n",
+        *(["## Training draws", "",
+           "Runs trained again with other seeds (train.draws: the weights' initialisation, the data order and the "
+           "train/validation split), flown on the same scenes as the run itself; success, all speeds pooled:", "",
+           draws_md] if draws_md else []),
         "## Training",
         "",
         _training_table(cfg),

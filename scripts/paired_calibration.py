@@ -1,0 +1,76 @@
+"""How often a paired interval decides between two networks that are equal in expectation, when each training
+draw of a network flies differently: one draw per network, and several compared by their mean
+(``vitfly.eval.paired``, two-level bootstrap, with and without spreading the draws).
+
+A simulated study: ``--scenes`` scenes, each with its own difficulty (normal on the logit scale, sd 1, shared by
+every policy), and networks whose every training draw gets its own skill (normal on the logit scale, with the sd
+that ``--draw-sd-points`` sets near 50 % success: 4 x points / 100). Both networks have the same expected skill, so
+every decided interval is a false verdict; a calibrated 95 % interval decides about 5 % of the time.
+
+    python scripts/paired_calibration.py                      # the table in docs/evaluation.md
+    python scripts/paired_calibration.py --draw-sd-points 0   # no training noise: the scenes' alone
+"""
+
+from __future__ import annotations
+
+import argparse
+import re
+import sys
+
+import numpy as np
+
+from vitfly.eval.paired import two_level_bootstrap_interval
+
+
+def flights(n: int, difficulty: np.ndarray, draw_sd_points: float, rng) -> np.ndarray:
+    """n training draws of one network flying the scenes of ``difficulty`` (logit): 0/1 success, one row a draw."""
+    skill = rng.normal(0.0, 4 * draw_sd_points / 100, (n, 1))
+    return (rng.random((n, len(difficulty))) < 1 / (1 + np.exp(difficulty - skill))).astype(float)
+
+
+def decided_share(draws_a: int, draws_b: int, args: argparse.Namespace, spread: bool, rng) -> float:
+    """Share of simulated studies whose interval excludes 0 (a false verdict: the networks are equal)."""
+    decided = 0
+    for _ in range(args.studies):
+        difficulty = rng.normal(0.0, 1.0, args.scenes)
+        va, vb = (flights(n, difficulty, args.draw_sd_points, rng) for n in (draws_a, draws_b))
+        low, high = two_level_bootstrap_interval(np.arange(args.scenes), va, vb,
+                                                 resamples=args.resamples, seed=int(rng.integers(2**31)),
+                                                 spread=spread)
+        decided += low > 0 or high < 0
+    return decided / args.studies
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--scenes", type=int, default=90, help="shared scenes per study (the laptop preset's spheres: 90)")
+    p.add_argument("--draw-sd-points", type=float, default=15.0,
+                   help="spread of one network's draws in success points (the laptop ConvNet's five: about 15)")
+    p.add_argument("--draws", nargs="+", default=["1x1", "2x2", "3x3", "5x5", "5x3"], metavar="AxB",
+                   help="draws of the two networks")
+    p.add_argument("--studies", type=int, default=400, help="simulated studies per row")
+    p.add_argument("--resamples", type=int, default=2000)
+    p.add_argument("--seed", type=int, default=0)
+    args = p.parse_args(argv)
+    pairs = [tuple(int(v) for v in d.split("x")) if re.fullmatch(r"[1-9]\d*x[1-9]\d*", d) else None
+             for d in args.draws]
+    if None in pairs:
+        print(f"--draws: expected AxB with A, B >= 1 (e.g. 3x3), got {' '.join(args.draws)}", file=sys.stderr)
+        return 2
+    if args.scenes < 2 or args.studies < 1:
+        print("--scenes must be >= 2 and --studies >= 1", file=sys.stderr)
+        return 2
+    rng = np.random.default_rng(args.seed)
+    print(f"{args.studies} studies a row, {args.scenes} scenes, draws' sd {args.draw_sd_points:g} points: share of "
+          "intervals deciding between equal networks (95 %: about 0.05 when calibrated)")
+    print("| draws | draws resampled as they are | draws spread by sqrt(n / (n - 1)) |")
+    print("|---|---:|---:|")
+    for a, b in pairs:
+        plain = decided_share(a, b, args, False, rng)
+        spread = decided_share(a, b, args, True, rng)
+        print(f"| {a} vs {b} | {plain:.3f} | {spread:.3f} |", flush=True)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,107 @@
+"""Training draws in the paired comparisons (vitfly.eval.paired, two-level bootstrap): values worked out by hand."""
+
+import numpy as np
+import pytest
+from scipy.stats import bootstrap
+
+from vitfly.eval.findings import draw_label, label, split_draw
+from vitfly.eval.paired import paired_difference, two_level_bootstrap_interval
+from vitfly.eval.paired_findings import lead_table, paired_findings, paired_findings_markdown, resnet_no_better
+from vitfly.eval.records import TrialRecord
+
+
+def rec(policy, scene, speed=7.0, collisions=0.0, env="spheres"):
+    return TrialRecord(policy=policy, env=env, speed=speed, trial=scene, scene_seed=1000 + scene,
+                       success_paper=collisions == 0, success_strict=collisions == 0, reached_goal=True,
+                       end_reason="goal", metrics={"collisions": float(collisions)}, path={}, setup={}, setup_id="s")
+
+
+def flights(policy, collisions, scenes=20, speed=7.0):
+    return [rec(policy, k, speed, collisions(k)) for k in range(scenes)]
+
+
+def test_draw_labels():
+    assert draw_label("vit_lstm-nostate", 2) == "vit_lstm-nostate-s2"
+    assert split_draw("vit_lstm-nostate-s2") == ("vit_lstm-nostate", 2)
+    assert split_draw("resnet18") == ("resnet18", None) and split_draw("expert") == ("expert", None)
+    assert label("vit_lstm-nostate-s2") == "ViT+LSTM (no state), seed 2"
+    assert label("convnet-s10") == "ConvNet, seed 10" and label("convnet") == "ConvNet"
+
+
+def test_two_draws_by_hand():
+    # a's draws: 1 collision in every trial, and 3; b: none. Scenes are all alike, so only the draws vary. The
+    # draws are spread from their mean 2 by sqrt(2 / 1): 2 -+ sqrt(2). A resample of the two is (low, low) with
+    # p 1/4, (high, high) 1/4, mixed 1/2 -> mean 2 - sqrt(2), 2 + sqrt(2) or 2; the 2.5 % and 97.5 % quantiles
+    # of that are the two ends
+    recs = flights("a", lambda k: 1) + flights("a-s1", lambda k: 3) + flights("b", lambda k: 0)
+    d = paired_difference(recs, "a", "b", "spheres", "collisions", draws={"a": ["a", "a-s1"]})
+    assert (d.mean_a, d.mean_b, d.diff) == (2.0, 0.0, 2.0)
+    assert (d.low, d.high) == pytest.approx((2 - 2**0.5, 2 + 2**0.5))
+    assert (d.draws_a, d.draws_b, d.pairs, d.scenes, d.mcnemar_p) == (2, 1, 20, 20, None)
+    assert d.better == "b" and d.text().endswith("20 pairs, 2 vs 1 draws")
+    # without the draws mapping, a is its own draw alone: 1 collision a trial, a constant difference
+    alone = paired_difference(recs, "a", "b", "spheres", "collisions")
+    assert (alone.low, alone.diff, alone.high, alone.draws_a) == (1.0, 1.0, 1.0, 1)
+
+
+def test_equal_draws_give_exactly_zero():
+    # every draw of a flies as b, scene by scene (varied outcomes): the difference is exactly 0 in every resample
+    pattern = [(k * 7) % 3 for k in range(30)]
+    recs = [r for p in ("a", "a-s1", "a-s2", "b", "b-s4") for r in flights(p, lambda k: pattern[k], scenes=30)]
+    d = paired_difference(recs, "a", "b", "spheres", "success", draws={"a": ["a", "a-s1", "a-s2"], "b": ["b", "b-s4"]})
+    assert (d.low, d.diff, d.high) == (0.0, 0.0, 0.0) and not d.decided
+
+
+def test_one_draw_each_is_the_scene_bootstrap():
+    # one draw a side: the two-level interval is a percentile bootstrap over scenes, which scipy computes alike
+    rng = np.random.default_rng(5)
+    diff = rng.normal(0.3, 1.0, 200)
+    scene = np.repeat(np.arange(100), 2)  # two speeds per scene: scenes are resampled whole
+    ours = two_level_bootstrap_interval(scene, diff[None, :], np.zeros((1, 200)))
+    per_scene = diff.reshape(100, 2).mean(axis=1)  # equal pairs per scene: the mean of scene means
+    ref = bootstrap((per_scene,), np.mean, n_resamples=10_000, method="percentile",
+                    rng=np.random.default_rng(0)).confidence_interval
+    assert ours == pytest.approx((ref.low, ref.high), abs=0.01)
+
+
+def test_a_trial_missing_in_one_draw_drops_that_pair_for_all():
+    missing = [r for r in flights("a-s1", lambda k: 1) if r.trial != 3]  # draw s1 never flew scene 3
+    recs = flights("a", lambda k: 0) + missing + flights("b", lambda k: 0)
+    d = paired_difference(recs, "a", "b", "spheres", "collisions", draws={"a": ["a", "a-s1"]})
+    assert (d.pairs, d.mean_a) == (19, 0.5)
+
+
+def test_findings_and_lead_table_pool_draws():
+    # ResNet-18: one draw, always succeeds. ConvNet: its own draw never succeeds, its second always: pooled
+    # 50 %, so ResNet-18 leads by 50 points; ConvNet's draws spread to 50 -+ 50 sqrt(2) %, so the resample puts
+    # its mean at 50 - 70.7, 50 or 50 + 70.7 %, the difference at 120.7 (clipped to 100), 50 or -20.7 points
+    spheres = (flights("resnet18", lambda k: 0) + flights("convnet", lambda k: 1) + flights("convnet-s1", lambda k: 0)
+               + flights("vit_lstm", lambda k: 0))
+    draws = {"convnet": ["convnet", "convnet-s1"]}
+    one = resnet_no_better(spheres)  # ConvNet's own draw only: +100 points, decided, not reproduced
+    pooled = resnet_no_better(spheres, draws)
+    assert one.verdict == "not" and one.comparisons[0].diff == 1.0
+    d = pooled.comparisons[0]
+    assert (d.diff, d.high) == (0.5, 1.0) and d.low == pytest.approx(0.5 - 0.5 * 2**0.5)
+    assert pooled.verdict == "reproduced"
+    md = paired_findings_markdown(paired_findings(spheres, None, None, None, draws=draws))
+    assert "training draws (a model by its draws' mean)" in md
+    lead = lead_table(spheres, "spheres", draws=draws)
+    assert "seed 1" not in lead  # a draw is no row of its own
+    assert "| ConvNet | +50 points [-21, +100], 20 pairs, 1 vs 2 draws |" in lead
+
+
+def test_calibration_script_shows_one_draw_deciding_between_equal_networks(capsys, monkeypatch):
+    import importlib
+    from pathlib import Path
+
+    monkeypatch.syspath_prepend(str(Path(__file__).resolve().parents[1]))
+    calibration = importlib.import_module("scripts.paired_calibration")
+    assert calibration.main(["--draws", "1x1", "4x4", "--studies", "60", "--resamples", "500",
+                             "--draw-sd-points", "25"]) == 0
+    rows = [line.split("|") for line in capsys.readouterr().out.splitlines() if line.startswith("| 1 vs 1")
+            or line.startswith("| 4 vs 4")]
+    one, four = (float(r[3]) for r in rows)  # the spread column
+    # draws 25 points apart on the logit scale: one draw each decides most equal pairs, four each few
+    assert one > 0.5 and four < 0.2
+    assert calibration.main(["--draws", "3"]) == 2 and "expected AxB" in capsys.readouterr().err
