@@ -16,7 +16,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--out", help="run directory (train/, eval/, figures/, results.md)")
     parser.add_argument("--data", help="HDF5 training dataset (collected or completed if needed)")
     parser.add_argument("--models", nargs="+",
-                        help="only these architectures (trained with and, where the config says, without state)")
+                        help="only these architectures (trained with and, where the config says, without state, "
+                        "and their train.draws)")
     parser.add_argument("--train-seed", type=int, metavar="N",
                         help="train every run with this seed (its validation split and initialisation) instead of "
                         "the recipes' own, and no train.draws; needs --out, so that runs of two seeds never share a "
