@@ -71,6 +71,13 @@ def test_a_trial_missing_in_one_draw_drops_that_pair_for_all():
     assert (d.pairs, d.mean_a) == (19, 0.5)
 
 
+def test_a_draw_not_flown_yet_is_left_out_of_its_group():
+    recs = flights("a", lambda k: k % 2) + flights("b", lambda k: 0)
+    alone = paired_difference(recs, "a", "b", "spheres", "success")
+    grouped = paired_difference(recs, "a", "b", "spheres", "success", draws={"a": ["a", "a-s1"]})
+    assert grouped == alone and grouped.draws_a == 1 and grouped.mcnemar_p is not None
+
+
 def test_findings_and_lead_table_pool_draws():
     # ResNet-18: one draw, always succeeds. ConvNet: its own draw never succeeds, its second always: pooled
     # 50 %, so ResNet-18 leads by 50 points; ConvNet's draws spread to 50 -+ 50 sqrt(2) %, so the resample puts

@@ -269,11 +269,14 @@ def paired_difference(records: Iterable[TrialRecord], a: str, b: str, env: str, 
                       draws: Mapping[str, Sequence[str]] | None = None) -> PairedDifference | None:
     """``a`` minus ``b`` on ``metric`` in ``env`` (over ``speeds``, default all both flew); None without pairs.
 
-    ``draws``: policy -> the labels of its training draws (its own label among them); a policy with several is
-    compared by its draws' mean, with the two-level interval of the module docstring."""
+    ``draws``: policy -> the labels of its training draws (its own label among them); a policy with several flown
+    in ``env`` is compared by their mean, with the two-level interval of the module docstring."""
     if metric not in HIGHER_IS_BETTER:
         raise VitflyError(f"paired metric {metric!r}: expected one of {', '.join(METRICS)}")
-    draws_a, draws_b = list((draws or {}).get(a) or [a]), list((draws or {}).get(b) or [b])
+    records = list(records)
+    flown = {rec.policy for rec in records if rec.env == env}  # a draw not flown (yet) is left out of its group
+    draws_a = [p for p in (draws or {}).get(a) or [a] if p in flown] or [a]
+    draws_b = [p for p in (draws or {}).get(b) or [b] if p in flown] or [b]
     if len(draws_a) > 1 or len(draws_b) > 1:
         return _draws_difference(records, a, b, draws_a, draws_b, env, metric, speeds, confidence, resamples, seed)
     scene, speed, va, vb = pairs(records, a, b, env, metric, speeds)
