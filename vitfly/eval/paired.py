@@ -134,16 +134,8 @@ def pairs(records: Iterable[TrialRecord], a: str, b: str, env: str, metric: str,
 
     A pair is one (scene seed, speed) that both flew in ``env``, with the metric defined for both.
     """
-    wanted = None if speeds is None else {float(s) for s in speeds}
-    values: dict[str, dict[tuple[int, float], float]] = {a: {}, b: {}}
-    for rec in records:
-        if rec.env == env and rec.policy in values and (wanted is None or float(rec.speed) in wanted):
-            values[rec.policy][(rec.scene_seed, float(rec.speed))] = metric_value(rec, metric)
-    keys = sorted(k for k in values[a].keys() & values[b].keys()
-                  if math.isfinite(values[a][k]) and math.isfinite(values[b][k]))
-    va = np.array([values[a][k] for k in keys], dtype=np.float64)
-    vb = np.array([values[b][k] for k in keys], dtype=np.float64)
-    return (np.array([k[0] for k in keys], dtype=np.int64), np.array([k[1] for k in keys]), va, vb)
+    scene, speed, va, vb = draw_pairs(records, [a], [b], env, metric, speeds)
+    return scene, speed, va[0], vb[0]
 
 
 def draw_pairs(records: Iterable[TrialRecord], a: Sequence[str], b: Sequence[str], env: str, metric: str,
@@ -273,12 +265,14 @@ def paired_difference(records: Iterable[TrialRecord], a: str, b: str, env: str, 
     in ``env`` is compared by their mean, with the two-level interval of the module docstring."""
     if metric not in HIGHER_IS_BETTER:
         raise VitflyError(f"paired metric {metric!r}: expected one of {', '.join(METRICS)}")
-    records = list(records)
-    flown = {rec.policy for rec in records if rec.env == env}  # a draw not flown (yet) is left out of its group
-    draws_a = [p for p in (draws or {}).get(a) or [a] if p in flown] or [a]
-    draws_b = [p for p in (draws or {}).get(b) or [b] if p in flown] or [b]
-    if len(draws_a) > 1 or len(draws_b) > 1:
-        return _draws_difference(records, a, b, draws_a, draws_b, env, metric, speeds, confidence, resamples, seed)
+    if draws and (len(draws.get(a) or []) > 1 or len(draws.get(b) or []) > 1):
+        records = list(records)
+        flown = {rec.policy for rec in records if rec.env == env}  # a draw not flown (yet) is left out of its group
+        draws_a = [p for p in draws.get(a) or [a] if p in flown] or [a]
+        draws_b = [p for p in draws.get(b) or [b] if p in flown] or [b]
+        if len(draws_a) > 1 or len(draws_b) > 1:
+            return _draws_difference(records, a, b, draws_a, draws_b, env, metric, speeds, confidence, resamples,
+                                     seed)
     scene, speed, va, vb = pairs(records, a, b, env, metric, speeds)
     if len(va) == 0:
         return None
