@@ -1,11 +1,14 @@
 """How often a paired interval decides between two networks that are equal in expectation, when each training
 draw of a network flies differently: one draw per network, and several compared by their mean
-(``vitfly.eval.paired``, two-level bootstrap, with and without spreading the draws).
+(``vitfly.eval.paired``, two-level bootstrap, with and without spreading the draws, and with a network trained
+once borrowing the pooled spread of the study's other networks' draws).
 
 A simulated study: ``--scenes`` scenes, each with its own difficulty (normal on the logit scale, sd 1, shared by
 every policy), and networks whose every training draw gets its own skill (normal on the logit scale, with the sd
 that ``--draw-sd-points`` sets near 50 % success: 4 x points / 100). Both networks have the same expected skill, so
-every decided interval is a false verdict; a calibrated 95 % interval decides about 5 % of the time.
+every decided interval is a false verdict; a calibrated 95 % interval decides about 5 % of the time. The pooled
+spread comes from the compared networks' own draws (where they have several) and from ``--pool-draws`` more
+networks of the same study (the laptop preset: ConvNet's five draws, LSTMnet's, ViT's and ViT+LSTM's three).
 
     python scripts/paired_calibration.py                      # the table in docs/evaluation.md
     python scripts/paired_calibration.py --draw-sd-points 0   # no training noise: the scenes' alone
@@ -19,7 +22,7 @@ import sys
 
 import numpy as np
 
-from vitfly.eval.paired import two_level_bootstrap_interval
+from vitfly.eval.paired import pooled_draw_variance, two_level_bootstrap_interval
 
 
 def flights(n: int, difficulty: np.ndarray, draw_sd_points: float, rng) -> np.ndarray:
@@ -28,15 +31,20 @@ def flights(n: int, difficulty: np.ndarray, draw_sd_points: float, rng) -> np.nd
     return (rng.random((n, len(difficulty))) < 1 / (1 + np.exp(difficulty - skill))).astype(float)
 
 
-def decided_share(draws_a: int, draws_b: int, args: argparse.Namespace, spread: bool, rng) -> float:
+def decided_share(draws_a: int, draws_b: int, args: argparse.Namespace, spread: bool, borrow: bool, rng) -> float:
     """Share of simulated studies whose interval excludes 0 (a false verdict: the networks are equal)."""
     decided = 0
     for _ in range(args.studies):
         difficulty = rng.normal(0.0, 1.0, args.scenes)
         va, vb = (flights(n, difficulty, args.draw_sd_points, rng) for n in (draws_a, draws_b))
+        borrowed = 0.0
+        if borrow and 1 in (draws_a, draws_b):
+            others = [flights(n, difficulty, args.draw_sd_points, rng) for n in args.pool_draws]
+            pooled = pooled_draw_variance([va, vb, *others])
+            borrowed = ((draws_a == 1) + (draws_b == 1)) * pooled[0] if pooled else 0.0
         low, high = two_level_bootstrap_interval(np.arange(args.scenes), va, vb,
                                                  resamples=args.resamples, seed=int(rng.integers(2**31)),
-                                                 spread=spread)
+                                                 spread=spread, borrowed_var=borrowed)
         decided += low > 0 or high < 0
     return decided / args.studies
 
@@ -46,8 +54,10 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--scenes", type=int, default=90, help="shared scenes per study (the laptop preset's spheres: 90)")
     p.add_argument("--draw-sd-points", type=float, default=15.0,
                    help="spread of one network's draws in success points (the laptop ConvNet's five: about 15)")
-    p.add_argument("--draws", nargs="+", default=["1x1", "2x2", "3x3", "5x5", "5x3"], metavar="AxB",
+    p.add_argument("--draws", nargs="+", default=["1x1", "2x2", "3x3", "5x5", "5x3", "3x1"], metavar="AxB",
                    help="draws of the two networks")
+    p.add_argument("--pool-draws", nargs="*", type=int, default=[5, 3, 3], metavar="N",
+                   help="draws of the study's other networks, whose spread a network trained once borrows")
     p.add_argument("--studies", type=int, default=400, help="simulated studies per row")
     p.add_argument("--resamples", type=int, default=2000)
     p.add_argument("--seed", type=int, default=0)
@@ -57,18 +67,21 @@ def main(argv: list[str] | None = None) -> int:
     if None in pairs:
         print(f"--draws: expected AxB with A, B >= 1 (e.g. 3x3), got {' '.join(args.draws)}", file=sys.stderr)
         return 2
-    if args.scenes < 2 or args.studies < 1:
-        print("--scenes must be >= 2 and --studies >= 1", file=sys.stderr)
+    if args.scenes < 2 or args.studies < 1 or any(n < 1 for n in args.pool_draws):
+        print("--scenes must be >= 2, --studies >= 1 and --pool-draws >= 1 each", file=sys.stderr)
         return 2
     rng = np.random.default_rng(args.seed)
     print(f"{args.studies} studies a row, {args.scenes} scenes, draws' sd {args.draw_sd_points:g} points: share of "
           "intervals deciding between equal networks (95 %: about 0.05 when calibrated)")
-    print("| draws | draws resampled as they are | draws spread by sqrt(n / (n - 1)) |")
-    print("|---|---:|---:|")
+    print("| draws | draws resampled as they are | draws spread by sqrt(n / (n - 1)) | and one draw borrowing the "
+          f"pooled spread (pool: {' '.join(map(str, args.pool_draws)) or 'the two'}) |")
+    print("|---|---:|---:|---:|")
     for a, b in pairs:
-        plain = decided_share(a, b, args, False, rng)
-        spread = decided_share(a, b, args, True, rng)
-        print(f"| {a} vs {b} | {plain:.3f} | {spread:.3f} |", flush=True)
+        plain = decided_share(a, b, args, False, False, rng)
+        spread = decided_share(a, b, args, True, False, rng)
+        # only a network trained once borrows: elsewhere the column is the one before
+        borrowed = decided_share(a, b, args, True, True, rng) if 1 in (a, b) else spread
+        print(f"| {a} vs {b} | {plain:.3f} | {spread:.3f} | {borrowed:.3f} |", flush=True)
     return 0
 
 

@@ -5,7 +5,7 @@ import pytest
 from scipy.stats import bootstrap
 
 from vitfly.eval.findings import draw_label, label, split_draw
-from vitfly.eval.paired import paired_difference, two_level_bootstrap_interval
+from vitfly.eval.paired import paired_difference, pooled_draw_variance, two_level_bootstrap_interval
 from vitfly.eval.paired_findings import lead_table, paired_findings, paired_findings_markdown, resnet_no_better
 from vitfly.eval.records import TrialRecord
 
@@ -92,10 +92,59 @@ def test_findings_and_lead_table_pool_draws():
     assert (d.diff, d.high) == (0.5, 1.0) and d.low == pytest.approx(0.5 - 0.5 * 2**0.5)
     assert pooled.verdict == "reproduced"
     md = paired_findings_markdown(paired_findings(spheres, None, None, None, draws=draws))
-    assert "training draws (a model by its draws' mean)" in md
+    assert "training draws (a model by its draws' mean; one trained once borrows" in md
     lead = lead_table(spheres, "spheres", draws=draws)
     assert "seed 1" not in lead  # a draw is no row of its own
     assert "| ConvNet | +50 points [-21, +100], 20 pairs, 1 vs 2 draws |" in lead
+
+
+def test_pooled_draw_variance_by_hand():
+    # run 1: draws' means 1 and 3 (squares about their mean 2: 1 + 1, 1 degree of freedom); run 2: means 0, 0, 3
+    # (mean 1; squares 1 + 1 + 4 = 6, 2 degrees); a run of one draw adds nothing: (2 + 6) / (1 + 2) = 8 / 3
+    run1 = np.array([[1.0, 1.0], [2.0, 4.0]])
+    run2 = np.array([[0.0, 0.0], [0.0, 0.0], [3.0, 3.0]])
+    assert pooled_draw_variance([run1, run2, np.array([[5.0, 9.0]])]) == (pytest.approx(8 / 3), 3)
+    assert pooled_draw_variance([np.array([[5.0, 9.0]])]) is None
+
+
+def test_a_run_trained_once_borrows_the_pooled_spread():
+    # ConvNet's two draws: 0 and 2 collisions a trial, so one draw's variance is 2. Every scene alike, so the
+    # intervals are the borrowed normal terms alone: ResNet-18 (trained once, 1 collision) against the expert
+    # (never trains: borrows nothing) 1 -+ 1.96 sqrt(2); against UNet+LSTM (trained once, 0) 1 -+ 1.96 sqrt(2 + 2)
+    recs = (flights("convnet", lambda k: 0) + flights("convnet-s1", lambda k: 2) + flights("resnet18", lambda k: 1)
+            + flights("unet_lstm", lambda k: 0) + flights("expert", lambda k: 0))
+    draws = {"convnet": ["convnet", "convnet-s1"], "resnet18": ["resnet18"], "unet_lstm": ["unet_lstm"]}
+    vs_expert = paired_difference(recs, "resnet18", "expert", "spheres", "collisions", draws=draws)
+    assert vs_expert.borrowed_sd == pytest.approx(2**0.5) and vs_expert.diff == 1.0
+    assert (vs_expert.low, vs_expert.high) == pytest.approx((1 - 1.96 * 2**0.5, 1 + 1.96 * 2**0.5), abs=0.08)
+    assert "1 vs 1 draws (trained once: the pooled draw sd 1.41 borrowed)" in vs_expert.text()
+    both = paired_difference(recs, "resnet18", "unet_lstm", "spheres", "collisions", draws=draws)
+    assert (both.low, both.high) == pytest.approx((1 - 1.96 * 2, 1 + 1.96 * 2), abs=0.1)
+    # the expert and straight flight against each other: no training, no borrowing, the constant difference
+    plain = paired_difference(recs + flights("straight", lambda k: 3), "straight", "expert", "spheres",
+                              "collisions", draws=draws)
+    assert (plain.low, plain.diff, plain.high, plain.borrowed_sd) == (3.0, 3.0, 3.0, 0.0)
+
+
+def test_borrowing_against_draws_matches_the_mixture_by_hand():
+    # collisions per trial, every scene alike. ResNet-18 (trained once): 1. ConvNet's draws: 1 and 0 (variance
+    # 1/2), spread to 0.5 -+ 0.5 sqrt(2), so their resampled mean is 0.5 - 0.707, 0.5 or 0.5 + 0.707 (p 1/4, 1/2,
+    # 1/4); ResNet-18 adds a normal term of variance 1/2. The difference is a mixture of three normals (sd
+    # sqrt(1/2)) at 0.5 + 0.707, 0.5, 0.5 - 0.707; its 2.5 % and 97.5 % quantiles, by root-finding, are the interval
+    from scipy.optimize import brentq
+    from scipy.stats import norm
+
+    recs = flights("resnet18", lambda k: 1) + flights("convnet", lambda k: 1) + flights("convnet-s1", lambda k: 0)
+    draws = {"convnet": ["convnet", "convnet-s1"], "resnet18": ["resnet18"]}
+    d = paired_difference(recs, "resnet18", "convnet", "spheres", "collisions", draws=draws)
+    centres = [0.5 + 0.5 * 2**0.5, 0.5, 0.5 - 0.5 * 2**0.5]
+
+    def cdf(x):
+        return sum(w * norm.cdf(x, c, 0.5**0.5) for w, c in zip([0.25, 0.5, 0.25], centres, strict=True))
+
+    low, high = (brentq(lambda x, q=q: cdf(x) - q, -10, 10) for q in (0.025, 0.975))
+    assert d.diff == 0.5 and (d.low, d.high) == pytest.approx((low, high), abs=0.04)
+    assert (round(low, 2), round(high, 2)) == (-1.19, 2.19)  # wider than ConvNet's draws alone: 0.5 -+ 0.707
 
 
 def test_calibration_script_shows_one_draw_deciding_between_equal_networks(capsys, monkeypatch):
@@ -111,4 +160,6 @@ def test_calibration_script_shows_one_draw_deciding_between_equal_networks(capsy
     one, four = (float(r[3]) for r in rows)  # the spread column
     # draws 25 points apart on the logit scale: one draw each decides most equal pairs, four each few
     assert one > 0.5 and four < 0.2
+    # borrowing the spread of the other networks' draws (5, 3, 3) brings one draw each down to few
+    assert float(rows[0][4]) < 0.2 and float(rows[1][4]) == four
     assert calibration.main(["--draws", "3"]) == 2 and "expected AxB" in capsys.readouterr().err

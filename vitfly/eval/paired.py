@@ -26,7 +26,12 @@ draws narrows the spread of their mean by (n - 1) / n, which matters at the 2-5 
 each policy's draws are first moved away from their mean by sqrt(n / (n - 1)) (``spread_draws``; a success
 interval is then clipped to [-1, 1]). ``scripts/paired_calibration.py`` measures how often intervals decide
 between two networks that are equal in expectation. A policy with one draw adds no training noise to the
-interval, so a comparison is only as sure about training as its draws allow.
+interval of its own; where the study has trained other runs several times, a run trained once borrows their
+spread: ``draws`` then lists every trained run (one label where it was trained once), and the difference gets a
+normal term with the draws' pooled variance (``pooled_draw_variance``: between the means of each run's draws on
+their shared trials, pooled over the runs with several, their degrees of freedom as weights), once for each side
+trained once. Policies not in ``draws`` (the expert, straight flight, the planners) do not train and borrow
+nothing.
 
 A difference is *decided* when its interval excludes 0. ``verdict`` says which policy is better, or
 ``cannot tell``; the interval's half-width is the smallest difference the study could have told apart.
@@ -85,6 +90,7 @@ class PairedDifference:
     mcnemar_p: float | None = None
     draws_a: int = 1  # training draws pooled into a (and b): the interval resamples them
     draws_b: int = 1
+    borrowed_sd: float = 0.0  # pooled sd of one training draw, borrowed by each side trained once (0: none)
 
     @property
     def decided(self) -> bool:
@@ -108,8 +114,10 @@ class PairedDifference:
         d = 0 if self.metric in OUTCOMES else digits
         body = f"{scale * self.diff:+.{d}f}{unit} [{scale * self.low:+.{d}f}, {scale * self.high:+.{d}f}]"
         extra = f", McNemar p={self.mcnemar_p:.2g}" if self.mcnemar_p is not None else ""
-        if self.draws_a > 1 or self.draws_b > 1:
+        if self.draws_a > 1 or self.draws_b > 1 or self.borrowed_sd:
             extra += f", {self.draws_a} vs {self.draws_b} draws"
+        if self.borrowed_sd:
+            extra += f" (trained once: the pooled draw sd {scale * self.borrowed_sd:.{d}f}{unit} borrowed)"
         return f"{body}, {self.pairs} pairs{extra}"
 
     def to_dict(self) -> dict:
@@ -165,11 +173,26 @@ def spread_draws(sums: np.ndarray) -> np.ndarray:
     return mean + math.sqrt(n / (n - 1)) * (sums - mean)
 
 
+def pooled_draw_variance(groups: Iterable[np.ndarray]) -> tuple[float, int] | None:
+    """(variance, degrees of freedom) between training draws' means, pooled over runs: ``groups`` holds per run its
+    draws' values (one row a draw) on the trials they all flew; a run with one draw adds nothing; None without
+    a run of two or more."""
+    squares, dof = 0.0, 0
+    for values in groups:
+        if len(values) > 1 and values.shape[1] > 0:
+            means = values.mean(axis=1)
+            squares += float(((means - means.mean()) ** 2).sum())
+            dof += len(means) - 1
+    return (squares / dof, dof) if dof else None
+
+
 def two_level_bootstrap_interval(scene: np.ndarray, va: np.ndarray, vb: np.ndarray, confidence: float = CONFIDENCE,
-                                 resamples: int = RESAMPLES, seed: int = 0, spread: bool = True) -> tuple[float, float]:
+                                 resamples: int = RESAMPLES, seed: int = 0, spread: bool = True,
+                                 borrowed_var: float = 0.0) -> tuple[float, float]:
     """Percentile interval of mean(a's draws) - mean(b's draws) per pair, resampling each policy's draws (rows of
     ``va``, ``vb``, spread by ``spread_draws`` unless ``spread`` is False) and the scenes (columns grouped by
-    ``scene``; all pairs of a drawn scene kept)."""
+    ``scene``; all pairs of a drawn scene kept). ``borrowed_var``: the variance of a normal term added to every
+    resample (the training noise of sides trained once, ``pooled_draw_variance``)."""
     ids, column_scene = np.unique(scene, return_inverse=True)
     counts = np.bincount(column_scene, minlength=len(ids)).astype(np.float64)
     # per draw and scene: the sum of its pairs' values
@@ -186,7 +209,8 @@ def two_level_bootstrap_interval(scene: np.ndarray, va: np.ndarray, vb: np.ndarr
         times_b = rng.multinomial(len(vb), np.full(len(vb), 1 / len(vb)), size=n)
         times_s = rng.multinomial(len(ids), np.full(len(ids), 1 / len(ids)), size=n)
         per_scene = len(vb) * (times_a @ sum_a) - len(va) * (times_b @ sum_b)
-        stats.append((per_scene * times_s).sum(axis=1) / (len(va) * len(vb) * (times_s @ counts)))
+        stat = (per_scene * times_s).sum(axis=1) / (len(va) * len(vb) * (times_s @ counts))
+        stats.append(stat + rng.normal(0.0, math.sqrt(borrowed_var), n) if borrowed_var > 0 else stat)
     low, high = np.quantile(np.concatenate(stats), [(1 - confidence) / 2, (1 + confidence) / 2])
     return float(low), float(high)
 
@@ -262,17 +286,20 @@ def paired_difference(records: Iterable[TrialRecord], a: str, b: str, env: str, 
     """``a`` minus ``b`` on ``metric`` in ``env`` (over ``speeds``, default all both flew); None without pairs.
 
     ``draws``: policy -> the labels of its training draws (its own label among them); a policy with several flown
-    in ``env`` is compared by their mean, with the two-level interval of the module docstring."""
+    in ``env`` is compared by their mean, with the two-level interval of the module docstring. A policy listed
+    with one flown draw borrows the pooled spread of the listed policies with several (none: nothing borrowed)."""
     if metric not in HIGHER_IS_BETTER:
         raise VitflyError(f"paired metric {metric!r}: expected one of {', '.join(METRICS)}")
-    if draws and (len(draws.get(a) or []) > 1 or len(draws.get(b) or []) > 1):
+    if draws and any(len(v) > 1 for v in draws.values()) and (a in draws or b in draws):
         records = list(records)
         flown = {rec.policy for rec in records if rec.env == env}  # a draw not flown (yet) is left out of its group
         draws_a = [p for p in draws.get(a) or [a] if p in flown] or [a]
         draws_b = [p for p in draws.get(b) or [b] if p in flown] or [b]
-        if len(draws_a) > 1 or len(draws_b) > 1:
+        trained_once = (a in draws and len(draws_a) == 1) + (b in draws and len(draws_b) == 1)
+        pooled = _pooled(records, draws, flown, env, metric, speeds) if trained_once else None
+        if len(draws_a) > 1 or len(draws_b) > 1 or pooled:
             return _draws_difference(records, a, b, draws_a, draws_b, env, metric, speeds, confidence, resamples,
-                                     seed)
+                                     seed, pooled[0] if pooled else 0.0, trained_once)
     scene, speed, va, vb = pairs(records, a, b, env, metric, speeds)
     if len(va) == 0:
         return None
@@ -290,19 +317,28 @@ def paired_difference(records: Iterable[TrialRecord], a: str, b: str, env: str, 
                             a_only, b_only, p)
 
 
+def _pooled(records: list[TrialRecord], draws: Mapping[str, Sequence[str]], flown: set[str], env: str, metric: str,
+            speeds: Sequence[float] | None) -> tuple[float, int] | None:
+    """``pooled_draw_variance`` of the runs with two or more draws flown in ``env``."""
+    groups = [[p for p in labels if p in flown] for labels in draws.values()]
+    return pooled_draw_variance(draw_pairs(records, g, [], env, metric, speeds)[2] for g in groups if len(g) > 1)
+
+
 def _draws_difference(records: Iterable[TrialRecord], a: str, b: str, draws_a: list[str], draws_b: list[str],
                       env: str, metric: str, speeds: Sequence[float] | None, confidence: float, resamples: int,
-                      seed: int) -> PairedDifference | None:
+                      seed: int, draw_var: float = 0.0, trained_once: int = 0) -> PairedDifference | None:
     scene, speed, va, vb = draw_pairs(records, draws_a, draws_b, env, metric, speeds)
     if va.shape[1] == 0:
         return None
     diff = float(va.mean() - vb.mean())
-    low, high = two_level_bootstrap_interval(scene, va, vb, confidence, resamples, seed)
+    low, high = two_level_bootstrap_interval(scene, va, vb, confidence, resamples, seed,
+                                             borrowed_var=trained_once * draw_var)
     if metric in OUTCOMES:  # spread draws can reach past what a success difference can be
         low, high = max(low, -1.0), min(high, 1.0)
     return PairedDifference(metric, a, b, env, tuple(sorted(set(speed.tolist()))), va.shape[1],
                             len(set(scene.tolist())), float(va.mean()), float(vb.mean()), diff, low, high,
-                            draws_a=len(draws_a), draws_b=len(draws_b))
+                            draws_a=len(draws_a), draws_b=len(draws_b),
+                            borrowed_sd=math.sqrt(draw_var) if trained_once else 0.0)
 
 
 PAIRED_CSV_METRICS = ("success", "collisions")

@@ -72,7 +72,8 @@ def _decide(diffs: list[PairedDifference]) -> tuple[str, str]:
 
 def _over(draws: Draws) -> str:
     several = any(len(v) > 1 for v in (draws or {}).values())
-    return "paired over scenes and training draws (a model by its draws' mean)" if several else "paired over scenes"
+    return ("paired over scenes and training draws (a model by its draws' mean; one trained once borrows the "
+            "pooled spread of the others' draws)" if several else "paired over scenes")
 
 
 def _rule(scope: str, draws: Draws = None) -> str:

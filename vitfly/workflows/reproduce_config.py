@@ -408,12 +408,15 @@ def runs(cfg: ReproduceConfig, with_draws: bool = True) -> list[Run]:
 
 
 def draw_groups(cfg: ReproduceConfig) -> dict[str, list[str]]:
-    """Run label -> the policy labels of its draws (its own first), for the runs with other draws."""
+    """Run label -> the policy labels of its draws (its own first), for every run the study trains when any has
+    other draws (a run trained once: its label alone, so that its comparisons borrow the others' spread,
+    ``vitfly.eval.paired``); {} when none has."""
     groups: dict[str, list[str]] = {}
     for r in runs(cfg):
+        groups.setdefault(r.run, [r.run])
         if r.seed is not None:
-            groups.setdefault(r.run, [r.run]).append(r.label)
-    return groups
+            groups[r.run].append(r.label)
+    return groups if any(len(labels) > 1 for labels in groups.values()) else {}
 
 
 def check_draws(cfg: ReproduceConfig, source: str) -> None:

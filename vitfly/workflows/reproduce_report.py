@@ -218,7 +218,7 @@ def draws_markdown(cfg: ReproduceConfig, rows: dict[str, list[dict] | None]) -> 
     from vitfly.eval.findings import label, split_draw
     from vitfly.workflows.pipeline import success_by_policy
 
-    draws = draw_groups(cfg)
+    draws = {run: labels for run, labels in draw_groups(cfg).items() if len(labels) > 1}
     if not draws:
         return ""
     sweeps = [name for name in ("spheres", "trees", "window", "ablation") if rows.get(name)]
@@ -313,7 +313,9 @@ def results_markdown(cfg: ReproduceConfig, findings_md: str, files: dict[str, Pa
         "interval excludes 0 (vitfly.eval.paired)."
         + (" A run trained more than once (training draws, below) is compared by its draws' mean, with a "
            "two-level bootstrap: each resample draws each policy's training draws, then the scenes (percentile "
-           "interval). The findings table above reads each run's own draw." if draws_md else ""),
+           "interval); a run trained once borrows the draws' spread pooled over the runs trained more than once (a "
+           "normal term with their pooled variance). The findings table above reads each run's own draw."
+           if draws_md else ""),
         "",
         paired_md or "(no trials yet)\n",
         *(["## Training draws", "",
