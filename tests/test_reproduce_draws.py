@@ -125,7 +125,8 @@ def test_command_line_narrows_the_draws(monkeypatch, tmp_path):
     parser = argparse.ArgumentParser()
     command.add_arguments(parser)
     laptop = command.config_from_args(parser.parse_args(["--preset", "laptop"]))
-    assert laptop.train.draws == {"convnet": [1, 2, 3, 4], "convnet-nostate": [1, 2, 3, 4], "vit_lstm": [1, 2],
+    assert laptop.train.draws == {"convnet": [1, 2, 3, 4], "convnet-nostate": [1, 2, 3, 4], "lstmnet": [1, 2],
+                                  "lstmnet-nostate": [1, 2], "vit": [1, 2], "vit_lstm": [1, 2],
                                   "vit_lstm-nostate": [1, 2]}
     one = command.config_from_args(parser.parse_args(["--preset", "laptop", "--models", "vit_lstm"]))
     assert one.train.draws == {"vit_lstm": [1, 2], "vit_lstm-nostate": [1, 2]}

@@ -158,8 +158,8 @@ def stage_report(cfg: ReproduceConfig) -> dict:
         files["paths_fixed_scene_3d"] = paper_figures.mean_paths_3d_figure(
             recs["paths"], figures / "paths_fixed_scene_3d.png", scene)
         lateral = {p: v["max_lateral"] for p, v in paper_figures.mean_paths(recs["paths"]).items()}
-    if recs["window"]:
-        seed, window_recs = scene_for_paths(recs["window"], "window")
+    if recs["window"]:  # each run's own draw, as the other figures
+        seed, window_recs = scene_for_paths([r for r in recs["window"] if r.policy not in other_draws], "window")
         files["window_paths"] = plot_paths(window_recs, figures / "window_paths.png",
                                            scene_of(window_recs, "window", window_recs[0].preset, seed),
                                            title=f"window at {window_recs[0].speed:g} m/s, scene seed {seed}")
