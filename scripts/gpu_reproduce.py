@@ -35,7 +35,8 @@ Here (the machine that goes on with the preset):
 ``train/``: a finished one with done.json naming the local checkpoint (``vitfly reproduce`` skips it as done),
 an unfinished one with its ``unfinished.json`` and never a done.json (``vitfly reproduce`` would resume it on
 this machine). A run that has a done.json here is left alone. ``status`` lists every run of the preset (done,
-unfinished k/N epochs, not started) and what the next slot carries: the unfinished run folders, within 64 MiB.
+unfinished k/N epochs, not started) and the next slot (``scripts/gpu_plan.py``): the unfinished run folders it
+carries, within 64 MiB, and the runs it starts, while what comes home still fits the next carry.
 A finished run returns without ``last.ckpt``: a later change of its settings trains it again from the start.
 """
 
@@ -492,55 +493,67 @@ def carry_path(path: Path) -> str:
         return str(path)
 
 
-def run_states(cfg) -> list[tuple[str, str, Path | None, int]]:
-    """(label, state, folder to carry or None, its bytes) for every run of the preset."""
+def run_states(cfg) -> list:
+    """Every run of the preset as it stands here (``scripts.gpu_plan.RunState``), in the preset's order."""
+    from scripts.gpu_plan import RunState
     from scripts.gpu_slots import MARKER, epochs_done, tree_bytes
     from vitfly.workflows.reproduce_config import runs, train_stage
 
     rows = []
     for run in runs(cfg):
-        label, d = run.dir_name, cfg.train_dir(*run)
+        d = cfg.train_dir(*run)
         n = train_stage(cfg, run.model, run.use_state, seed=run.seed).max_epochs
         if (d / "done.json").exists():
             on = json.loads((d / "done.json").read_text()).get("trained_on")
-            rows.append((label, "done" + (f" ({on['epochs']} epochs on {on['device']})" if on else ""), None, 0))
+            rows.append(RunState(run, "done", "done" + (f" ({on['epochs']} epochs on {on['device']})" if on else "")))
         elif (d / MARKER).exists():
             marker = {**json.loads((d / MARKER).read_text()), "epochs": epochs_done(d), "max_epochs": n}
-            rows.append((label, f"unfinished: {progress(marker)}", d, tree_bytes(d)))
+            rows.append(RunState(run, "unfinished", f"unfinished: {progress(marker)}", d, tree_bytes(d), marker))
         elif epochs_done(d):
-            rows.append((label, f"started here: {epochs_done(d)}/{n} epochs (vitfly reproduce resumes it)", None, 0))
+            rows.append(RunState(run, "started here",
+                                 f"started here: {epochs_done(d)}/{n} epochs (vitfly reproduce resumes it)"))
         else:
-            rows.append((label, "not started", None, 0))
+            rows.append(RunState(run, "not started", "not started"))
     return rows
 
 
 def status(args: argparse.Namespace) -> int:
+    from scripts.gpu_plan import next_slot
     from scripts.gpu_slots import CARRY_BYTES, mib
 
     cfg = load_cfg(args)
     rows = run_states(cfg)
-    width = max(len(r[0]) for r in rows)
-    for label, state, folder, size in rows:
-        print(f"{label:<{width}}  {state}" + (f"; carry {carry_path(folder)} ({mib(size)})" if folder else ""))
-    carry, later, total = [], [], 0
-    for label, _, folder, size in rows:
-        if folder is None:
-            continue
-        fits = total + size <= CARRY_BYTES
-        (carry if fits else later).append(label)
-        total += size if fits else 0
-    fresh = [r[0] for r in rows if r[1] == "not started"]
-    print(f"next slot carries {len(carry)} unfinished runs, {mib(total)} of {mib(CARRY_BYTES)}"
-          + (f"; {', '.join(later)} wait for a later slot (no room)" if later else ""))
-    if carry or fresh:
+    width = max(len(r.label) for r in rows)
+    for r in rows:
+        print(f"{r.label:<{width}}  {r.text}" + (f"; carry {carry_path(r.folder)} ({mib(r.size)})" if r.folder else ""))
+    slot = next_slot(cfg, rows, CARRY_BYTES, args.moments, args.deadline_s, args.reserve_s)
+    full = [label for label, why in slot.wait.items() if why == "no room in this call's carry"]
+    print(f"next slot carries {len(slot.carry)} unfinished runs, {mib(sum(r.size for r in slot.carry))} of "
+          f"{mib(CARRY_BYTES)}" + (f"; {', '.join(full)} wait for a later slot (no room)" if full else ""))
+    if slot.start:
+        print(f"  starts: {', '.join(r.label for r in slot.start)}"
+              + (f" ({slot.alone})" if slot.alone else f"; resume states expected home: at most "
+                 f"{mib(slot.back_bytes)} of the next call's {mib(CARRY_BYTES)}"))
+    for label, why in slot.wait.items():
+        if label not in full:
+            print(f"  waits: {label:<{width}}  {why}")
+    if slot.on_cpu:
+        models = " ".join(dict.fromkeys(label.split("-")[0] for label in slot.on_cpu))
+        print(f"  on a CPU (train.cpu_models): {', '.join(slot.on_cpu)}: vitfly reproduce --config {args.config} "
+              f"--preset {cfg.preset} --models {models} --stages train")
+    if slot.carry or slot.start:
         data_hash = local_data_hash(cfg) if Path(cfg.data).exists() else "HASH"
-        carried = [carry_path(run_dir(cfg, label)) for label in carry]
+        carried = [carry_path(r.folder) for r in slot.carry]
         if any(Path(c).is_absolute() for c in carried):
             print("  (outside the repository: the device tool carries only paths inside it)")
+        flags = [f"--deadline-s {args.deadline_s:g}"] if args.deadline_s != DEADLINE_S else []
+        flags += [f"--reserve-s {args.reserve_s:g}"] if args.reserve_s != RESERVE_S else []
+        flags += [f"--moments {args.moments}"] if args.moments != "fp32" else []
         print(f"  carry: {json.dumps(carried)}\n  command: python3 scripts/gpu.py train "
               f"--preset {cfg.preset} --out $OUT --expect-data-hash {data_hash}"
               + (f" --resume-from {' '.join(carried)}" if carried else "")
-              + (f" --runs {' '.join(fresh)}" if fresh else ""))
+              + (f" --runs {' '.join(r.label for r in slot.start)}" if slot.start else "")
+              + "".join(" " + f for f in flags))
     return 0
 
 
@@ -558,11 +571,12 @@ def add_commands(sub) -> dict:
     t.add_argument("--expect-data-hash", help="the dataset_hash the collected file must have")
     t.add_argument("--collect-workers", type=int, default=14)
     t.add_argument("--threads", type=int, default=2, help="torch threads per run")
-    t.add_argument("--deadline-s", type=float, default=560.0, help="the whole command, from its start")
-    t.add_argument("--reserve-s", type=float, default=40.0, help="left after training for packing")
     t.add_argument("--stop-after-epochs", type=int, help="epochs each run trains in this slot at most")
-    t.add_argument("--moments", choices=["fp32", "bf16"], default="fp32",
-                   help="Adam moments of unfinished runs (bf16: half their bytes, no longer an exact resume)")
+    for p in (t, sub.choices["status"]):  # status plans the slot train runs with them
+        p.add_argument("--deadline-s", type=float, default=DEADLINE_S, help="the whole command, from its start")
+        p.add_argument("--reserve-s", type=float, default=RESERVE_S, help="left after training for packing")
+        p.add_argument("--moments", choices=["fp32", "bf16"], default="fp32",
+                       help="Adam moments of unfinished runs (bf16: half their bytes, no longer an exact resume)")
     t.add_argument("--return-mib", type=float, default=105.0, help="what the pieces may hold (7 x 15 MiB)")
     one = sub.choices["train-one"]
     one.add_argument("--threads", type=int, default=2)
@@ -573,9 +587,10 @@ def add_commands(sub) -> dict:
     return {"train": train, "train-one": train_one, "status": status}
 
 
+DEADLINE_S, RESERVE_S = 560.0, 40.0  # a command may run 600 s
 COMMAND_HELP = {"train": "there: collect a preset's data, train named runs until the deadline, pack them",
                 "train-one": "there: one run (a child process of train)",
-                "status": "here: every run of a preset, and what the next slot carries"}
+                "status": "here: every run of a preset, and the next slot: what it carries and starts"}
 
 
 def preset_flags(p: argparse.ArgumentParser, required: bool) -> None:

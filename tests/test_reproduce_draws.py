@@ -104,7 +104,7 @@ def test_gpu_slots_know_draws_as_runs(tmp_path, monkeypatch):
     path = config(tmp_path, {"convnet-nostate": [5]})
     where = {"config": str(path), "preset": "tiny", "run_dir": str(tmp_path / "run"), "data": str(tmp_path / "d.h5")}
     cfg = slots.load_cfg(argparse.Namespace(**where))
-    assert [row[:2] for row in slots.run_states(cfg)][-1] == ("convnet-nostate-s5", "not started")
+    assert [(r.label, r.state) for r in slots.run_states(cfg)][-1] == ("convnet-nostate-s5", "not started")
     assert slots.parse_label("convnet-nostate-s5") == Run("convnet", False, 5)
     with pytest.raises(SystemExit, match="expected MODEL-state or MODEL-nostate"):
         slots.parse_label("convnet-s5")

@@ -48,6 +48,10 @@ class ReproduceTrain:
     draws: dict = field(default_factory=dict)  # run label (convnet, vit_lstm-nostate) -> seeds of more trainings of
     # that run, each trained into train/<model>-state-s<seed> and flown as <run>-s<seed> beside it; the paired
     # findings compare such a run by its draws' mean (vitfly.eval.paired)
+    slot_order: list[str] = field(default_factory=list)  # GPU slots (scripts/gpu.py status): models in the order
+    # they start there, runs with the state first, then without, then draws; [] = the order of `models`
+    cpu_models: list[str] = field(default_factory=list)  # models whose runs (draws included) train on a CPU
+    # (vitfly reproduce --models): left out of GPU slots
 
 
 @dataclass
@@ -203,6 +207,7 @@ def check_config(cfg: ReproduceConfig, source: str) -> None:
         raise VitflyError(f"{source}: paths.repeats must be >= 1 and paths.jitter_m >= 0")
     check_modular(cfg, source)
     check_draws(cfg, source)
+    check_slot_plan(cfg, source)
     for m in cfg.train.models:  # every recipe read (and checked) before anything runs
         train_stage(cfg, m, True, source)
     if t.closed_loop_check is not None:
@@ -437,6 +442,18 @@ def check_draws(cfg: ReproduceConfig, source: str) -> None:
         if own_seed in seeds:
             raise VitflyError(f"{source}: train.draws.{run} has the run's own seed {own_seed}: that draw is the run "
                               "itself")
+
+
+def check_slot_plan(cfg: ReproduceConfig, source: str) -> None:
+    """``train.slot_order`` and ``train.cpu_models`` name models the study trains, each once."""
+    trained = cfg.train.models  # nostate_models is a part of it
+    for name in ("slot_order", "cpu_models"):
+        models = getattr(cfg.train, name)
+        if not isinstance(models, list) or len(set(map(str, models))) != len(models):
+            raise VitflyError(f"{source}: train.{name} must be a list of distinct model names, got {models!r}")
+        if unknown := [m for m in models if m not in trained]:
+            raise VitflyError(f"{source}: train.{name} has {', '.join(map(repr, unknown))}, which the study does "
+                              f"not train; its models are {', '.join(trained)}")
 
 
 def done_checkpoint(train_dir: Path) -> Path | None:

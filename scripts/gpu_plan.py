@@ -1,0 +1,113 @@
+"""The next GPU slot of a reproduce preset, as docs/reproduce.md plans them: which unfinished runs it carries and
+which runs it starts (``scripts/gpu.py status`` prints it).
+
+What a slot does not finish comes home as a resume state, and the next slot must carry it back (at most 64 MiB
+a call). So a slot carries the unfinished runs (``train.slot_order`` first) within that limit, and starts runs
+not started yet, in the same order, only while the states expected home still fit it: a carried run that will
+not finish in this slot (its last slot's epoch time says so) counts with its size, a new run with its state's
+size estimated from its parameter count. A run whose state could never travel (ResNet-18's, 151 MiB) starts
+only alone, and must finish inside the command. Runs of ``train.cpu_models`` train on a CPU and are left out,
+as are runs being trained here (``vitfly reproduce`` resumes them).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+
+# last.ckpt: fp32 weights and Adam's two moments per parameter; best.ckpt: fp16 weights (scripts/gpu_slots.py)
+STATE_BYTES_PER_PARAM = {"fp32": 4 + 2 * 4 + 2, "bf16": 4 + 2 * 2 + 2}
+FOLDER_BYTES = 192 * 1024  # the rest of a run folder: checkpoint headers, metrics, split, marker (0.1-0.2 MiB
+# above the tensors, benchmarks/resume_state_size.py)
+STARTUP_S = 60.0  # before the first epoch: the data collected (about 25 s for 588 flights) and the runs started
+
+
+@dataclass
+class RunState:
+    """One run of the preset as it stands here."""
+
+    run: object  # vitfly.workflows.reproduce_config.Run
+    state: str  # done, unfinished, started here, not started
+    text: str  # what `status` prints after the label
+    folder: Path | None = None  # an unfinished run's folder (what the device tool carries)
+    size: int = 0  # its bytes
+    marker: dict = field(default_factory=dict)  # an unfinished run's resume marker (epochs, max_epochs, epoch_s)
+
+    @property
+    def label(self) -> str:
+        return self.run.dir_name
+
+
+@dataclass
+class Slot:
+    """The next slot: what it carries and starts, and what waits (label -> why)."""
+
+    carry: list[RunState] = field(default_factory=list)
+    start: list[RunState] = field(default_factory=list)
+    wait: dict[str, str] = field(default_factory=dict)
+    on_cpu: list[str] = field(default_factory=list)
+    back_bytes: int = 0  # resume states expected home
+    alone: str | None = None  # a run whose state cannot travel: it must finish inside the command
+
+
+def slot_rank(cfg, run) -> tuple:
+    """Slot order: runs with the state, then without, then draws; within each, ``train.slot_order`` and then
+    the order of ``train.models``."""
+    t = cfg.train
+    order = list(dict.fromkeys([*t.slot_order, *t.models]))
+    return (run.seed is not None, not run.use_state, order.index(run.model), run.seed or 0)
+
+
+def state_bytes(cfg, run, moments: str) -> int:
+    """The resume state of ``run`` after its first epoch, estimated from its network's parameter count."""
+    from vitfly.workflows.reproduce_config import train_stage
+    from vitfly.zoo.registry import create_model
+
+    kwargs = train_stage(cfg, run.model, run.use_state, seed=run.seed).policy_kwargs.get("model_kwargs") or {}
+    params = sum(p.numel() for p in create_model(run.model, use_state=run.use_state, **kwargs).parameters())
+    return params * STATE_BYTES_PER_PARAM[moments] + FOLDER_BYTES
+
+
+def finishes(r: RunState, train_s: float) -> bool:
+    """Whether an unfinished run's remaining epochs fit ``train_s`` at its last slot's epoch time."""
+    epoch_s = r.marker.get("epoch_s")
+    left = r.marker.get("max_epochs", 0) - r.marker.get("epochs", 0)
+    return epoch_s is not None and left * epoch_s <= train_s
+
+
+def next_slot(cfg, rows: list[RunState], carry_bytes: int, moments: str = "fp32",
+              deadline_s: float = 560.0, reserve_s: float = 40.0) -> Slot:
+    """The next slot for the runs ``rows`` (every run of the preset, as ``run_states`` lists them)."""
+    from scripts.gpu_slots import mib
+
+    slot = Slot()
+    cpu = set(cfg.train.cpu_models)
+    train_s = deadline_s - reserve_s - STARTUP_S
+    carried = 0
+    for r in sorted((r for r in rows if r.state == "unfinished"), key=lambda r: slot_rank(cfg, r.run)):
+        if carried + r.size <= carry_bytes:
+            slot.carry.append(r)
+            carried += r.size
+            slot.back_bytes += 0 if finishes(r, train_s) else r.size
+        else:
+            slot.wait[r.label] = "no room in this call's carry"
+    for r in sorted((r for r in rows if r.state == "not started"), key=lambda r: slot_rank(cfg, r.run)):
+        if r.run.model in cpu:
+            slot.on_cpu.append(r.label)
+            continue
+        size = state_bytes(cfg, r.run, moments)
+        if size > carry_bytes:  # it cannot come back unfinished: alone, with the whole command
+            if not slot.carry and not slot.start:
+                slot.start.append(r)
+                slot.alone = f"{r.label}'s state ({mib(size)}) cannot travel: it must finish inside this command"
+                break
+            slot.wait[r.label] = f"state {mib(size)}: cannot travel, trains alone in a slot"
+        elif slot.back_bytes + size <= carry_bytes or not (slot.carry or slot.start):
+            slot.start.append(r)
+            slot.back_bytes += size
+        else:
+            slot.wait[r.label] = f"state {mib(size)}: would not fit the next carry"
+    for r in rows:  # left behind by a run that trains alone
+        if r.state == "not started" and r.run.model not in cpu and r not in slot.start:
+            slot.wait.setdefault(r.label, "a later slot")
+    return slot

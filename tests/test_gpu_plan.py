@@ -1,0 +1,109 @@
+"""scripts/gpu_plan.py: the next GPU slot of the paper presets, worked out by hand.
+
+A resume state is 14 bytes a parameter with fp32 Adam moments (fp32 weights 4 + two moments 8 + the fp16 best
+checkpoint 2) and 10 with bf16 moments, plus 192 KiB for the rest of the run folder (checkpoint headers,
+metrics); the parameter counts are the ones the recipes state (configs/fit/paper/*.yaml). The next call carries
+at most 64 MiB = 67,108,864 bytes.
+"""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+import pytest
+
+from vitfly.errors import VitflyError
+from vitfly.workflows.reproduce_config import load_reproduce_config, runs
+
+REPO = Path(__file__).resolve().parents[1]
+if str(REPO) not in sys.path:
+    sys.path.insert(0, str(REPO))
+
+from scripts.gpu_plan import RunState, next_slot, state_bytes  # noqa: E402
+
+CARRY = 64 * 2**20
+
+
+def preset(name: str, **train):
+    return load_reproduce_config(REPO / "configs" / "reproduce.yaml", name, {"train": train} if train else None)
+
+
+def rows(cfg, done=(), unfinished=None) -> list[RunState]:
+    """Every run of ``cfg``: ``done`` labels done, ``unfinished`` label -> (bytes, marker), the rest not started."""
+    unfinished = unfinished or {}
+    out = []
+    for run in runs(cfg):
+        label = run.dir_name
+        if label in done:
+            out.append(RunState(run, "done", "done"))
+        elif label in unfinished:
+            size, marker = unfinished[label]
+            out.append(RunState(run, "unfinished", "unfinished", Path("runs") / label, size, marker))
+        else:
+            out.append(RunState(run, "not started", "not started"))
+    return out
+
+
+def labels(states) -> list[str]:
+    return [r.label for r in states]
+
+
+def test_state_bytes_from_the_parameter_count():
+    cfg = preset("paper")
+    vit_lstm = next(r for r in runs(cfg) if r.dir_name == "vit_lstm-state")
+    assert state_bytes(cfg, vit_lstm, "fp32") == 3_563_663 * 14 + 196_608 == 50_087_890
+    assert state_bytes(cfg, vit_lstm, "bf16") == 3_563_663 * 10 + 196_608
+
+
+def test_paper_first_slot_starts_the_lead_and_leaves_convnet_to_the_cpu():
+    cfg = preset("paper")
+    slot = next_slot(cfg, rows(cfg, done={"convnet-state", "convnet-nostate"}), CARRY)
+    assert labels(slot.start) == ["vit_lstm-state"] and slot.carry == []
+    assert slot.back_bytes == 50_087_890
+    assert slot.on_cpu == ["convnet-state-s1", "convnet-state-s2", "convnet-nostate-s1", "convnet-nostate-s2"]
+    assert "would not fit the next carry" in slot.wait["vit-state"]  # 50.09e6 + 43.61e6 > 67.11e6
+    assert set(slot.wait) == {"vit-state", "lstmnet-state", "unet_lstm-state", "vit_lstm-nostate", "vit-nostate",
+                              "lstmnet-nostate", "unet_lstm-nostate"}
+
+
+def test_bf16_moments_let_two_large_runs_share_a_slot():
+    cfg = preset("paper")
+    slot = next_slot(cfg, rows(cfg), CARRY, moments="bf16")
+    # 3,563,663 x 10 + 3,101,199 x 10 + 2 x 196,608 = 67,041,836 <= 67,108,864; a third (LSTMnet) would not fit
+    assert labels(slot.start) == ["vit_lstm-state", "vit-state"] and slot.back_bytes == 67_041_836
+
+
+@pytest.mark.parametrize("epoch_s, starts", [(10.0, []), (7.5, ["vit-state"])])
+def test_a_carried_run_frees_the_next_carry_only_when_it_will_finish(epoch_s, starts):
+    """60 epochs left: 600 s or 450 s, against 560 - 40 - 60 = 460 s of training in a slot."""
+    cfg = preset("paper")
+    marker = {"epochs": 40, "max_epochs": 100, "epoch_s": epoch_s}
+    slot = next_slot(cfg, rows(cfg, unfinished={"vit_lstm-state": (50_000_000, marker)}), CARRY)
+    assert labels(slot.carry) == ["vit_lstm-state"] and labels(slot.start) == starts
+
+
+def test_carry_in_slot_order_within_64_mib():
+    cfg = preset("paper")
+    big = {"epochs": 1, "max_epochs": 100, "epoch_s": 60.0}
+    slot = next_slot(cfg, rows(cfg, unfinished={"lstmnet-state": (41_000_000, big), "vit-state": (43_000_000, big)}),
+                     CARRY)
+    assert labels(slot.carry) == ["vit-state"]  # ViT before LSTMnet (train.slot_order), and only one fits
+    assert slot.wait["lstmnet-state"] == "no room in this call's carry" and slot.start == []
+
+
+def test_resnet18_trains_alone_and_must_finish():
+    cfg = preset("paper_vitfly")
+    others = {"convnet-state", "lstmnet-state", "unet_lstm-state", "vit_lstm-state"}
+    slot = next_slot(cfg, rows(cfg, done=others), CARRY)
+    assert labels(slot.start) == ["vit-state"] and "cannot travel" in slot.wait["resnet18-state"]
+    slot = next_slot(cfg, rows(cfg, done=others | {"vit-state"}), CARRY)
+    assert labels(slot.start) == ["resnet18-state"] and "must finish inside this command" in slot.alone
+
+
+def test_slot_plan_names_models_the_study_trains():
+    with pytest.raises(VitflyError, match="train.cpu_models has 'convnet', which the study does not train; its "
+                                          "models are vit, lstmnet"):
+        preset("paper", models=["vit", "lstmnet"], nostate_models=["lstmnet"], cpu_models=["convnet"])
+    with pytest.raises(VitflyError, match="train.slot_order must be a list of distinct model names"):
+        preset("paper", models=["vit"], nostate_models=[], slot_order=["vit", "vit"])
