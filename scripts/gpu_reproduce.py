@@ -181,6 +181,29 @@ def stage_unfinished(d: Path, dst: Path, marker: dict, moments: str) -> None:
     copy_run_files(d, dst, marker["epochs"])
 
 
+def lighten_to_fit(staged: list[tuple[str, Path]], report: dict, budget: int) -> None:
+    """While the staged folders exceed the trip back, unfinished runs with fp32 Adam moments (the largest first,
+    so that fewest runs lose exactness) are re-staged with bf16 moments: a resume that is no longer exact,
+    rather than a slot's work lost."""
+    import torch
+
+    from scripts.gpu_pack import HEADER_BYTES
+    from scripts.gpu_slots import MARKER, compact_moments, save_atomic, tree_bytes
+
+    for label, folder in sorted(staged, key=lambda s: -tree_bytes(s[1])):
+        if sum(tree_bytes(f) + HEADER_BYTES for _, f in staged) <= budget:
+            return
+        marker = json.loads((folder / MARKER).read_text()) if (folder / MARKER).exists() else None
+        if marker is None or marker["moments"] == "bf16":  # finished, or already light
+            continue
+        last = folder / "checkpoints" / "last.ckpt"
+        save_atomic(compact_moments(torch.load(last, map_location="cpu", weights_only=True), "bf16"), last)
+        (folder / MARKER).write_text(json.dumps({**marker, "moments": "bf16"}) + "\n")
+        report["runs"][label].update(moments="bf16", note="Adam moments sent in bf16 to fit the trip back "
+                                     "(the resume is no longer exact)")
+        log(f"{label}: Adam moments in bf16 to fit the trip back ({tree_bytes(folder) / 2**20:.1f} MiB now)")
+
+
 def pack(staged: list[tuple[str, Path]], out: Path, work: Path, budget: int) -> dict:
     """The staged run folders, in order, into ``out/runs.tar.NNN`` while they fit ``budget`` bytes; returns the
     manifest (``scripts/gpu_pack.py``: what was packed, what was left out, the pieces)."""
@@ -342,6 +365,7 @@ def return_runs(cfg, args, todo: list[str], ended: dict, resumed: dict, data_has
         log(f"{label}: {entry}; log tail: "
             + " | ".join((work / f"{label}.log").read_text().strip().splitlines()[-2:]))
     staged.sort(key=lambda s: report["runs"][s[0]]["state"] != "finished")  # finished runs first
+    lighten_to_fit(staged, report, int(args.return_mib * 2**20))
     report["pack"] = pack(staged, out, work, int(args.return_mib * 2**20))
     packed = [c["name"] for c in report["pack"]["contents"]]
     for label in packed:

@@ -234,6 +234,26 @@ def test_a_run_stopped_in_one_slot_resumes_in_the_next_exactly(tmp_path, data, t
     assert 0 < off < 0.01 * moved  # measured: 0.14 % of the distance the resumed epoch moved the weights
 
 
+def test_states_too_large_for_the_trip_back_come_home_with_bf16_moments(tmp_path, data, two_epochs):
+    """ViT+LSTM (47.8 MiB with fp32 moments, 34.2 with bf16) and ConvNet (3.2 MiB) against a 40 MiB trip back:
+    only ViT+LSTM's moments need to shrink (37.4 MiB), and nothing is left behind."""
+    gpu = load_script("gpu")
+    out = tmp_path / "back"
+    assert gpu.main(["train", "--config", str(two_epochs), "--preset", "tiny", "--data", str(data), "--run-dir",
+                     str(tmp_path / "gpu"), "--out", str(out), "--work", str(tmp_path / "work"), "--collect-workers",
+                     "1", "--threads", "1", "--runs", "vit_lstm-state", "convnet-state", "--stop-after-epochs", "1",
+                     "--return-mib", "40"]) == 0
+    report = json.loads((out / "gpu_reproduce.json").read_text())
+    assert report["pack"]["left_out"] == [] and report["runs"]["vit_lstm-state"]["moments"] == "bf16"
+    assert "moments" not in report["runs"]["convnet-state"]
+    assert gpu.main(["unpack", "--config", str(two_epochs), "--preset", "tiny", "--data", str(data), "--run-dir",
+                     str(tmp_path / "home"), str(out)]) == 0
+    for label, moments, dtype in (("vit_lstm-state", "bf16", torch.bfloat16), ("convnet-state", "fp32", torch.float32)):
+        run = tmp_path / "home" / "train" / label
+        assert json.loads((run / "unfinished.json").read_text())["moments"] == moments
+        assert trained_state(run / "checkpoints" / "last.ckpt")[1][0]["exp_avg"].dtype == dtype
+
+
 def test_a_slot_stops_a_run_before_an_epoch_that_would_end_too_late():
     slots = load_script("gpu_slots")
     assert slots.stop_reason(100.0, None, None, 0, None) is None
