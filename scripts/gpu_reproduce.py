@@ -565,6 +565,8 @@ def status(args: argparse.Namespace) -> int:
         models = " ".join(dict.fromkeys(label.split("-")[0] for label in slot.on_cpu))
         print(f"  on a CPU (train.cpu_models): {', '.join(slot.on_cpu)}: vitfly reproduce --config {args.config} "
               f"--preset {cfg.preset} --models {models} --stages train")
+    if all(r.state == "done" for r in rows):
+        print(f"  every run is done: vitfly reproduce --config {args.config} --preset {cfg.preset} flies them")
     if slot.carry or slot.start:
         data_hash = local_data_hash(cfg) if Path(cfg.data).exists() else "HASH"
         carried = [carry_path(r.folder) for r in slot.carry]
