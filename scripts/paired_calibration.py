@@ -12,6 +12,11 @@ networks of the same study (the laptop preset: ConvNet's five draws, LSTMnet's, 
 
     python scripts/paired_calibration.py                      # the table in docs/evaluation.md
     python scripts/paired_calibration.py --draw-sd-points 0   # no training noise: the scenes' alone
+    python scripts/paired_calibration.py --scenes 500 --draw-sd-points 3 --difference-points 5 \
+        --draws 1x1 3x1 --pool-draws 3 3                      # the power of the paper preset's verdicts
+
+With ``--difference-points D`` the first network's expected success is D points higher (over the scenes'
+difficulties), and the table gives the power: the share of studies whose interval decides it better.
 """
 
 from __future__ import annotations
@@ -25,18 +30,35 @@ import numpy as np
 from vitfly.eval.paired import pooled_draw_variance, two_level_bootstrap_interval
 
 
-def flights(n: int, difficulty: np.ndarray, draw_sd_points: float, rng) -> np.ndarray:
-    """n training draws of one network flying the scenes of ``difficulty`` (logit): 0/1 success, one row a draw."""
-    skill = rng.normal(0.0, 4 * draw_sd_points / 100, (n, 1))
+def logit_lead(points: float) -> float:
+    """The skill (logit) that raises success by ``points`` in expectation over the scenes' difficulties (N(0, 1)):
+    E[sigmoid(lead - d) - sigmoid(-d)] = points / 100, by Gauss-Hermite quadrature and root-finding."""
+    from scipy.optimize import brentq
+
+    d, w = np.polynomial.hermite_e.hermegauss(64)
+    w = w / w.sum()
+
+    def gain(lead: float) -> float:
+        return float((w * (1 / (1 + np.exp(d - lead)) - 1 / (1 + np.exp(d)))).sum()) - points / 100
+
+    return brentq(gain, 0.0, 20.0) if points else 0.0
+
+
+def flights(n: int, difficulty: np.ndarray, draw_sd_points: float, rng, lead: float = 0.0) -> np.ndarray:
+    """n training draws of one network flying the scenes of ``difficulty`` (logit): 0/1 success, one row a draw;
+    ``lead``: the network's expected skill (logit) above the other's."""
+    skill = rng.normal(lead, 4 * draw_sd_points / 100, (n, 1))
     return (rng.random((n, len(difficulty))) < 1 / (1 + np.exp(difficulty - skill))).astype(float)
 
 
 def decided_share(draws_a: int, draws_b: int, args: argparse.Namespace, spread: bool, borrow: bool, rng) -> float:
-    """Share of simulated studies whose interval excludes 0 (a false verdict: the networks are equal)."""
+    """Share of simulated studies whose interval excludes 0 (a false verdict: the networks are equal), or with
+    ``args.difference_points``, whose interval decides the better network better (the power)."""
     decided = 0
     for _ in range(args.studies):
         difficulty = rng.normal(0.0, 1.0, args.scenes)
-        va, vb = (flights(n, difficulty, args.draw_sd_points, rng) for n in (draws_a, draws_b))
+        va = flights(draws_a, difficulty, args.draw_sd_points, rng, logit_lead(args.difference_points))
+        vb = flights(draws_b, difficulty, args.draw_sd_points, rng)
         borrowed = 0.0
         if borrow and 1 in (draws_a, draws_b):
             others = [flights(n, difficulty, args.draw_sd_points, rng) for n in args.pool_draws]
@@ -45,7 +67,7 @@ def decided_share(draws_a: int, draws_b: int, args: argparse.Namespace, spread: 
         low, high = two_level_bootstrap_interval(np.arange(args.scenes), va, vb,
                                                  resamples=args.resamples, seed=int(rng.integers(2**31)),
                                                  spread=spread, borrowed_var=borrowed)
-        decided += low > 0 or high < 0
+        decided += low > 0 if args.difference_points else (low > 0 or high < 0)
     return decided / args.studies
 
 
@@ -58,6 +80,8 @@ def main(argv: list[str] | None = None) -> int:
                    help="draws of the two networks")
     p.add_argument("--pool-draws", nargs="*", type=int, default=[5, 3, 3], metavar="N",
                    help="draws of the study's other networks, whose spread a network trained once borrows")
+    p.add_argument("--difference-points", type=float, default=0.0,
+                   help="the first network's lead in success points (0: equal networks, the false verdicts)")
     p.add_argument("--studies", type=int, default=400, help="simulated studies per row")
     p.add_argument("--resamples", type=int, default=2000)
     p.add_argument("--seed", type=int, default=0)
@@ -71,8 +95,10 @@ def main(argv: list[str] | None = None) -> int:
         print("--scenes must be >= 2, --studies >= 1 and --pool-draws >= 1 each", file=sys.stderr)
         return 2
     rng = np.random.default_rng(args.seed)
-    print(f"{args.studies} studies a row, {args.scenes} scenes, draws' sd {args.draw_sd_points:g} points: share of "
-          "intervals deciding between equal networks (95 %: about 0.05 when calibrated)")
+    what = (f"share of intervals deciding the network {args.difference_points:g} points better better (the power)"
+            if args.difference_points else
+            "share of intervals deciding between equal networks (95 %: about 0.05 when calibrated)")
+    print(f"{args.studies} studies a row, {args.scenes} scenes, draws' sd {args.draw_sd_points:g} points: {what}")
     print("| draws | draws resampled as they are | draws spread by sqrt(n / (n - 1)) | and one draw borrowing the "
           f"pooled spread (pool: {' '.join(map(str, args.pool_draws)) or 'the two'}) |")
     print("|---|---:|---:|---:|")

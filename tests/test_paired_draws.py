@@ -163,3 +163,19 @@ def test_calibration_script_shows_one_draw_deciding_between_equal_networks(capsy
     # borrowing the spread of the other networks' draws (5, 3, 3) brings one draw each down to few
     assert float(rows[0][4]) < 0.2 and float(rows[1][4]) == four
     assert calibration.main(["--draws", "3"]) == 2 and "expected AxB" in capsys.readouterr().err
+    # a lead of 10 points over scenes whose difficulty is N(0, 1) on the logit scale, checked by sampling
+    difficulty = np.random.default_rng(0).normal(0.0, 1.0, 1_000_000)
+    lead = calibration.logit_lead(10)
+    gain = 1 / (1 + np.exp(difficulty - lead)) - 1 / (1 + np.exp(difficulty))
+    assert gain.mean() == pytest.approx(0.10, abs=0.002)
+    # the power: a network 30 points better, draws 1 point apart, 200 scenes: nearly every study decides it better;
+    # the same lead drowned in draws 40 points apart, one draw each borrowing their spread: fewer than half do
+    assert calibration.main(["--draws", "1x1", "--studies", "20", "--resamples", "500", "--scenes", "200",
+                             "--draw-sd-points", "1", "--difference-points", "30"]) == 0
+    out = capsys.readouterr().out
+    assert "30 points better better (the power)" in out
+    assert float(next(line for line in out.splitlines() if line.startswith("| 1 vs 1")).split("|")[4]) >= 0.9
+    assert calibration.main(["--draws", "1x1", "--studies", "20", "--resamples", "500", "--scenes", "200",
+                             "--draw-sd-points", "40", "--difference-points", "30"]) == 0
+    assert float(next(line for line in capsys.readouterr().out.splitlines()
+                      if line.startswith("| 1 vs 1")).split("|")[4]) < 0.5
