@@ -40,12 +40,13 @@ class RunState:
 
 @dataclass
 class Slot:
-    """The next slot: what it carries and starts, and what waits (label -> why)."""
+    """The next slot: what it carries and starts, what waits, and what is left to a CPU."""
 
     carry: list[RunState] = field(default_factory=list)
     start: list[RunState] = field(default_factory=list)
-    wait: dict[str, str] = field(default_factory=dict)
-    on_cpu: list[str] = field(default_factory=list)
+    no_room: list[str] = field(default_factory=list)  # unfinished runs beyond this call's carry
+    wait: dict[str, str] = field(default_factory=dict)  # runs not started: label -> why not in this slot
+    on_cpu: list[RunState] = field(default_factory=list)
     back_bytes: int = 0  # resume states expected home
     alone: str | None = None  # a run whose state cannot travel: it must finish inside the command
 
@@ -90,10 +91,10 @@ def next_slot(cfg, rows: list[RunState], carry_bytes: int, moments: str = "fp32"
             carried += r.size
             slot.back_bytes += 0 if finishes(r, train_s) else r.size
         else:
-            slot.wait[r.label] = "no room in this call's carry"
+            slot.no_room.append(r.label)
     for r in sorted((r for r in rows if r.state == "not started"), key=lambda r: slot_rank(cfg, r.run)):
         if r.run.model in cpu:
-            slot.on_cpu.append(r.label)
+            slot.on_cpu.append(r)
             continue
         size = state_bytes(cfg, r.run, moments)
         if size > carry_bytes:  # it cannot come back unfinished: alone, with the whole command

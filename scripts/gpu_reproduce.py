@@ -551,20 +551,19 @@ def status(args: argparse.Namespace) -> int:
     for r in rows:
         print(f"{r.label:<{width}}  {r.text}" + (f"; carry {carry_path(r.folder)} ({mib(r.size)})" if r.folder else ""))
     slot = next_slot(cfg, rows, CARRY_BYTES, args.moments, args.deadline_s, args.reserve_s)
-    full = [label for label, why in slot.wait.items() if why == "no room in this call's carry"]
     print(f"next slot carries {len(slot.carry)} unfinished runs, {mib(sum(r.size for r in slot.carry))} of "
-          f"{mib(CARRY_BYTES)}" + (f"; {', '.join(full)} wait for a later slot (no room)" if full else ""))
+          f"{mib(CARRY_BYTES)}" + (f"; {', '.join(slot.no_room)} wait for a later slot (no room)"
+                                   if slot.no_room else ""))
     if slot.start:
         print(f"  starts: {', '.join(r.label for r in slot.start)}"
               + (f" ({slot.alone})" if slot.alone else f"; resume states expected home: at most "
                  f"{mib(slot.back_bytes)} of the next call's {mib(CARRY_BYTES)}"))
     for label, why in slot.wait.items():
-        if label not in full:
-            print(f"  waits: {label:<{width}}  {why}")
+        print(f"  waits: {label:<{width}}  {why}")
     if slot.on_cpu:
-        models = " ".join(dict.fromkeys(label.split("-")[0] for label in slot.on_cpu))
-        print(f"  on a CPU (train.cpu_models): {', '.join(slot.on_cpu)}: vitfly reproduce --config {args.config} "
-              f"--preset {cfg.preset} --models {models} --stages train")
+        models = " ".join(dict.fromkeys(r.run.model for r in slot.on_cpu))
+        print(f"  on a CPU (train.cpu_models): {', '.join(r.label for r in slot.on_cpu)}: vitfly reproduce "
+              f"--config {args.config} --preset {cfg.preset} --models {models} --stages train")
     if all(r.state == "done" for r in rows):
         print(f"  every run is done: vitfly reproduce --config {args.config} --preset {cfg.preset} flies them")
     if slot.carry or slot.start:

@@ -61,7 +61,7 @@ def test_paper_first_slot_starts_the_lead_and_leaves_convnet_to_the_cpu():
     slot = next_slot(cfg, rows(cfg, done={"convnet-state", "convnet-nostate"}), CARRY)
     assert labels(slot.start) == ["vit_lstm-state"] and slot.carry == []
     assert slot.back_bytes == 50_087_890
-    assert slot.on_cpu == ["convnet-state-s1", "convnet-state-s2", "convnet-nostate-s1", "convnet-nostate-s2"]
+    assert labels(slot.on_cpu) == ["convnet-state-s1", "convnet-state-s2", "convnet-nostate-s1", "convnet-nostate-s2"]
     assert "would not fit the next carry" in slot.wait["vit-state"]  # 50.09e6 + 43.61e6 > 67.11e6
     assert set(slot.wait) == {"vit-state", "lstmnet-state", "unet_lstm-state", "vit_lstm-nostate", "vit-nostate",
                               "lstmnet-nostate", "unet_lstm-nostate"}
@@ -89,7 +89,7 @@ def test_carry_in_slot_order_within_64_mib():
     slot = next_slot(cfg, rows(cfg, unfinished={"lstmnet-state": (41_000_000, big), "vit-state": (43_000_000, big)}),
                      CARRY)
     assert labels(slot.carry) == ["vit-state"]  # ViT before LSTMnet (train.slot_order), and only one fits
-    assert slot.wait["lstmnet-state"] == "no room in this call's carry" and slot.start == []
+    assert slot.no_room == ["lstmnet-state"] and slot.start == []
 
 
 def test_resnet18_trains_alone_and_must_finish():
