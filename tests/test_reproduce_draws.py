@@ -130,6 +130,9 @@ def test_command_line_narrows_the_draws(monkeypatch, tmp_path):
                                   "vit_lstm-nostate": [1, 2]}
     one = command.config_from_args(parser.parse_args(["--preset", "laptop", "--models", "vit_lstm"]))
     assert one.train.draws == {"vit_lstm": [1, 2], "vit_lstm-nostate": [1, 2]}
+    # the slot plan narrows alike (the paper preset: LSTMnet trains on a CPU, the others in GPU slots)
+    lstmnet = command.config_from_args(parser.parse_args(["--preset", "paper", "--models", "lstmnet"]))
+    assert (lstmnet.train.slot_order, lstmnet.train.cpu_models) == (["lstmnet"], ["lstmnet"])
     # another copy of the study (--train-seed) has no draws: seed 3 would be one of ConvNet's
     copy = command.config_from_args(parser.parse_args(["--preset", "laptop", "--train-seed", "3", "--out",
                                                        str(tmp_path / "s3")]))

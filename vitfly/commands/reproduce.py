@@ -47,7 +47,9 @@ def config_from_args(args: argparse.Namespace):
         cfg = dataclasses.replace(cfg, train=dataclasses.replace(
             t, models=list(args.models), nostate_models=[m for m in t.nostate_models if m in args.models],
             publish_models=[m for m in t.publish_models if m in args.models],
-            draws={run: seeds for run, seeds in t.draws.items() if run.removesuffix("-nostate") in args.models}))
+            draws={run: seeds for run, seeds in t.draws.items() if run.removesuffix("-nostate") in args.models},
+            slot_order=[m for m in t.slot_order if m in args.models],
+            cpu_models=[m for m in t.cpu_models if m in args.models]))
     if args.models or args.train_seed is not None:
         check_config(cfg, "--models" if args.models else "--train-seed")
     return cfg
