@@ -103,7 +103,7 @@ def next_slot(cfg, rows: list[RunState], carry_bytes: int, moments: str = "fp32"
                 slot.alone = f"{r.label}'s state ({mib(size)}) cannot travel: it must finish inside this command"
                 break
             slot.wait[r.label] = f"state {mib(size)}: cannot travel, trains alone in a slot"
-        elif slot.back_bytes + size <= carry_bytes or not (slot.carry or slot.start):
+        elif slot.back_bytes + size <= carry_bytes:
             slot.start.append(r)
             slot.back_bytes += size
         else:
