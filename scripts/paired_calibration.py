@@ -54,10 +54,10 @@ def flights(n: int, difficulty: np.ndarray, draw_sd_points: float, rng, lead: fl
 def decided_share(draws_a: int, draws_b: int, args: argparse.Namespace, spread: bool, borrow: bool, rng) -> float:
     """Share of simulated studies whose interval excludes 0 (a false verdict: the networks are equal), or with
     ``args.difference_points``, whose interval decides the better network better (the power)."""
-    decided = 0
+    decided, lead = 0, logit_lead(args.difference_points)
     for _ in range(args.studies):
         difficulty = rng.normal(0.0, 1.0, args.scenes)
-        va = flights(draws_a, difficulty, args.draw_sd_points, rng, logit_lead(args.difference_points))
+        va = flights(draws_a, difficulty, args.draw_sd_points, rng, lead)
         vb = flights(draws_b, difficulty, args.draw_sd_points, rng)
         borrowed = 0.0
         if borrow and 1 in (draws_a, draws_b):
