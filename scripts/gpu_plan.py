@@ -1,13 +1,16 @@
 """The next GPU slot of a reproduce preset, as docs/reproduce.md plans them: which unfinished runs it carries and
-which runs it starts (``scripts/gpu.py status`` prints it).
+which runs it starts (``scripts/gpu.py status`` prints it, ``scripts/gpu.py carry`` writes the carry).
 
-What a slot does not finish comes home as a resume state, and the next slot must carry it back (at most 64 MiB
-a call). So a slot carries the unfinished runs (``train.slot_order`` first) within that limit, and starts runs
-not started yet, in the same order, only while the states expected home still fit it: a carried run that will
-not finish in this slot (its last slot's epoch time says so) counts with its size, a new run with its state's
-size estimated from its parameter count. A run whose state could never travel (ResNet-18's, 151 MiB) starts
-only alone, and must finish inside the command. Runs of ``train.cpu_models`` train on a CPU and are left out,
-as are runs being trained here (``vitfly reproduce`` resumes them).
+What a slot does not finish comes home as a resume state, and the next slot must carry it back: the device tool
+sends the working tree (30.7 MiB, most of it the shipped weights) and the carried paths, 64 MiB in all, so a
+carry holds what the tree leaves. The carried state is lean: last.ckpt alone (fp32 weights and Adam's moments,
+in fp32 where they fit, else in bf16: an inexact resume), best.ckpt stays at home. So a slot carries the
+unfinished runs (``train.slot_order`` first) within that room, and starts runs not started yet, in the same
+order, only while the states expected home still fit it: a carried run that will not finish in this slot (its
+last slot's epoch time says so) counts with its size, a new run with its state's size estimated from its
+parameter count. A run whose state could never travel (ResNet-18's) starts only alone, and must finish inside
+the command. Runs of ``train.cpu_models`` train on a CPU and are left out, as are runs being trained here
+(``vitfly reproduce`` resumes them).
 """
 
 from __future__ import annotations
@@ -15,10 +18,11 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from pathlib import Path
 
-# last.ckpt: fp32 weights and Adam's two moments per parameter; best.ckpt: fp16 weights (scripts/gpu_slots.py)
-STATE_BYTES_PER_PARAM = {"fp32": 4 + 2 * 4 + 2, "bf16": 4 + 2 * 2 + 2}
+# a carried state: last.ckpt's fp32 weights and Adam's two moments per parameter (best.ckpt stays at home)
+STATE_BYTES_PER_PARAM = {"fp32": 4 + 2 * 4, "bf16": 4 + 2 * 2}
 FOLDER_BYTES = 192 * 1024  # the rest of a run folder: checkpoint headers, metrics, split, marker (0.1-0.2 MiB
 # above the tensors, benchmarks/resume_state_size.py)
+MOMENTS = {"auto": ("fp32", "bf16"), "fp32": ("fp32",), "bf16": ("bf16",)}  # what a carry may use, best first
 STARTUP_S = 60.0  # before the first epoch: the data collected (about 25 s for 588 flights) and the runs started
 
 
@@ -49,6 +53,8 @@ class Slot:
     on_cpu: list[RunState] = field(default_factory=list)
     back_bytes: int = 0  # resume states expected home
     alone: str | None = None  # a run whose state cannot travel: it must finish inside the command
+    moments: dict[str, str] = field(default_factory=dict)  # carried label -> the precision its moments travel in
+    sizes: dict[str, int] = field(default_factory=dict)  # carried label -> its carried bytes (estimated)
 
 
 def slot_rank(cfg, run) -> tuple:
@@ -60,7 +66,7 @@ def slot_rank(cfg, run) -> tuple:
 
 
 def state_bytes(cfg, run, moments: str) -> int:
-    """The resume state of ``run`` after its first epoch, estimated from its network's parameter count."""
+    """The carried resume state of ``run``, estimated from its network's parameter count."""
     from vitfly.workflows.reproduce_config import train_stage
     from vitfly.zoo.registry import create_model
 
@@ -76,9 +82,10 @@ def finishes(r: RunState, train_s: float) -> bool:
     return epoch_s is not None and left * epoch_s <= train_s
 
 
-def next_slot(cfg, rows: list[RunState], carry_bytes: int, moments: str = "fp32",
+def next_slot(cfg, rows: list[RunState], carry_bytes: int, moments: str = "auto",
               deadline_s: float = 560.0, reserve_s: float = 40.0) -> Slot:
-    """The next slot for the runs ``rows`` (every run of the preset, as ``run_states`` lists them)."""
+    """The next slot for the runs ``rows`` (every run of the preset, as ``run_states`` lists them); ``carry_bytes``:
+    the room a call leaves the carry; ``moments``: what the carried moments may be (auto: fp32 where they fit)."""
     from scripts.gpu_slots import mib
 
     slot = Slot()
@@ -86,17 +93,20 @@ def next_slot(cfg, rows: list[RunState], carry_bytes: int, moments: str = "fp32"
     train_s = deadline_s - reserve_s - STARTUP_S
     carried = 0
     for r in sorted((r for r in rows if r.state == "unfinished"), key=lambda r: slot_rank(cfg, r.run)):
-        if carried + r.size <= carry_bytes:
+        fits = [m for m in MOMENTS[moments] if carried + state_bytes(cfg, r.run, m) <= carry_bytes]
+        if fits:
+            size = state_bytes(cfg, r.run, fits[0])
             slot.carry.append(r)
-            carried += r.size
-            slot.back_bytes += 0 if finishes(r, train_s) else r.size
+            slot.moments[r.label], slot.sizes[r.label] = fits[0], size
+            carried += size
+            slot.back_bytes += 0 if finishes(r, train_s) else state_bytes(cfg, r.run, MOMENTS[moments][-1])
         else:
             slot.no_room.append(r.label)
     for r in sorted((r for r in rows if r.state == "not started"), key=lambda r: slot_rank(cfg, r.run)):
         if r.run.model in cpu:
             slot.on_cpu.append(r)
             continue
-        size = state_bytes(cfg, r.run, moments)
+        size = state_bytes(cfg, r.run, MOMENTS[moments][-1])  # the next carry may shrink its moments
         if size > carry_bytes:  # it cannot come back unfinished: alone, with the whole command
             if not slot.carry and not slot.start:
                 slot.start.append(r)

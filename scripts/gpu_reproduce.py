@@ -55,7 +55,7 @@ ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
 DROPPED_KEYS = ("optimizer_states", "lr_schedulers", "callbacks", "loops")  # resume state, not the network
-RUN_FILES = ("metrics.csv", "split.json", "cost.json", "hparams.yaml")  # what travels besides checkpoints
+RUN_FILES = ("metrics.csv", "split.json", "cost.json", "hparams.yaml", "data.json")  # what travels besides checkpoints
 SLOT_ENDED_RC = 3  # train-one's exit status when the slot ended before the run did
 REPORT = "gpu_reproduce.json"  # what happened to each run, and the manifest of runs.tar.NNN
 
@@ -97,7 +97,9 @@ def device_name() -> str:
 def train_one(args: argparse.Namespace) -> int:
     """One run, exactly as ``vitfly reproduce``'s train stage trains it, ended early when the slot ends."""
     from scripts.gpu_slots import SlotEnded, SlotStop
-    from vitfly.workflows.pipeline import stage_train
+    from vitfly.atomic import write_text
+    from vitfly.training.fit import BestCheckpointMissing
+    from vitfly.workflows.pipeline import stage_train, train_settings
     from vitfly.workflows.reproduce import _add_cost, _fit_seconds
     from vitfly.workflows.reproduce_config import train_callbacks, train_stage
 
@@ -115,6 +117,10 @@ def train_one(args: argparse.Namespace) -> int:
         print(f"[train] {args.train_one}: slot ended after {slot.trained} epochs here: {stop}", flush=True)
         _add_cost(train_dir, time.perf_counter() - t0, fit_before_s)
         return SLOT_ENDED_RC
+    except BestCheckpointMissing as missing:  # carried lean: its best epoch is at home, and none here beat it
+        write_text(train_dir / "done.json", json.dumps({"checkpoint": str(missing.path),
+                                                        "train": train_settings(stage, cfg.data)}) + "\n")
+        print(f"[train] {args.train_one}: finished; its best epoch is the one at home", flush=True)
     _add_cost(train_dir, time.perf_counter() - t0, fit_before_s)
     return 0
 
@@ -148,17 +154,20 @@ def copy_run_files(d: Path, dst: Path, epochs: int | None) -> None:
             shutil.copy(d / name, dst / name)
 
 
-def stage_finished(d: Path, dst: Path, slots: list[dict], data_hash: str) -> dict:
-    """A finished run as it travels: slim best checkpoint and done.json naming it (made absolute by unpack)."""
+def stage_finished(d: Path, dst: Path, slots: list[dict], data_hash: str, best_epoch: int | None = None) -> dict:
+    """A finished run as it travels: slim best checkpoint and done.json naming it (made absolute by unpack). A run
+    carried without its best.ckpt whose best epoch (``best_epoch``) came before this slot travels without one:
+    unpack keeps the one at home."""
     import torch
 
     (dst / "checkpoints").mkdir(parents=True)
     done = json.loads((d / "done.json").read_text())
-    best = slim_checkpoint(Path(done["checkpoint"]), dst / "checkpoints" / "best.ckpt")
+    if Path(done["checkpoint"]).exists():
+        best_epoch = slim_checkpoint(Path(done["checkpoint"]), dst / "checkpoints" / "best.ckpt")["epoch"] + 1
     last = torch.load(d / "checkpoints" / "last.ckpt", map_location="cpu", weights_only=True, mmap=True)
     done["checkpoint"] = "checkpoints/best.ckpt"
     done["trained_on"] = {"device": " + ".join(dict.fromkeys(s["device"] for s in slots)), "weights": "fp16",
-                          "best_epoch": best["epoch"] + 1, "epochs": int(last.get("epoch", -1)) + 1,
+                          "best_epoch": best_epoch, "epochs": int(last.get("epoch", -1)) + 1,
                           "steps": int(last.get("global_step", -1)), "dataset_hash": data_hash, "slots": slots}
     (dst / "done.json").write_text(json.dumps(done) + "\n")
     copy_run_files(d, dst, None)
@@ -321,11 +330,13 @@ def stage_run(cfg, label: str, ended: tuple, resumed: dict, data_hash: str, args
     marker = resumed[label][1] if label in resumed else {"label": label, "preset": args.preset, "slots": []}
     before, after = (marker.get("epochs", 0), epochs_done(d))
     slot = {"device": device_name(), "epochs": [before, after], "wall_s": round(wall_s, 1)}
+    if label in resumed:  # an exact resume (fp32) or not (bf16)
+        slot["moments_in"] = marker.get("carried_moments", marker.get("moments", "fp32"))
     entry = {"rc": rc, "epochs": [before, after], "wall_s": slot["wall_s"]}
     dst = work / "stage" / label
     if (d / "done.json").exists():
         entry["state"] = "finished"
-        stage_finished(d, dst, [*marker["slots"], slot], data_hash)
+        stage_finished(d, dst, [*marker["slots"], slot], data_hash, marker.get("best_epoch"))
         return entry, dst
     if after <= before:
         entry.update(state="no progress", note="no epoch finished this slot; nothing returned")
@@ -333,7 +344,7 @@ def stage_run(cfg, label: str, ended: tuple, resumed: dict, data_hash: str, args
     epoch_s = wall_s / (after - before)  # startup included: errs long, so the next slot stops in time
     run = parse_label(label)
     max_epochs = train_stage(cfg, run.model, run.use_state, seed=run.seed).max_epochs
-    marker = {**marker, "epochs": after, "max_epochs": max_epochs,
+    marker = {**{k: v for k, v in marker.items() if k != "carried_moments"}, "epochs": after, "max_epochs": max_epochs,
               "dataset_hash": data_hash, "moments": args.moments, "epoch_s": round(epoch_s, 1),
               "slots": [*marker["slots"], slot]}
     entry.update(state="unfinished", max_epochs=marker["max_epochs"])
@@ -446,7 +457,16 @@ def extract_returned(src: Path, tmp: Path) -> None:
     unpack(src, "runs", fresh_dir(tmp), REPORT)
 
 
+def keep_best_at_home(run: Path, dst: Path) -> None:
+    """A run carried lean (``scripts/gpu.py carry``) comes back without best.ckpt when no epoch of the slot beat
+    the best one here: that one moves into the returned folder."""
+    best = run / "checkpoints" / "best.ckpt"
+    if not best.exists():
+        shutil.move(str(dst / "checkpoints" / "best.ckpt"), best)
+
+
 def place_finished(run: Path, dst: Path) -> None:
+    keep_best_at_home(run, dst)
     if dst.exists():  # an unfinished attempt (here or from a slot): the finished run replaces it
         print(f"{dst}: unfinished here; replaced by the returned finished run")
         shutil.rmtree(dst)
@@ -465,6 +485,7 @@ def place_unfinished(run: Path, dst: Path) -> None:
     if here >= marker["epochs"]:
         print(f"{dst}: already {here} epochs here; the returned state ({marker['epochs']} epochs) left out")
         return
+    keep_best_at_home(run, dst)
     if dst.exists():
         shutil.rmtree(dst)
     shutil.move(str(run), dst)
@@ -486,6 +507,10 @@ def checked_runs(tmp: Path, src: Path, cfg, local: str) -> list[Path]:
         if returned_hash(run) != local:
             raise SystemExit(f"{src}: {run.name} was trained on dataset_hash {returned_hash(run)}; the local "
                              f"{cfg.data} has {local}; nothing unpacked")
+        home = run_dir(cfg, run.name) / "checkpoints" / "best.ckpt"
+        if not (run / "checkpoints" / "best.ckpt").exists() and not home.exists():
+            raise SystemExit(f"{src}: {run.name} came back without best.ckpt (its best epoch is the one at home, "
+                             f"carried lean), but {home} is missing; nothing unpacked")
     return runs
 
 
@@ -507,14 +532,6 @@ def unpack(args: argparse.Namespace) -> int:
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
     return 0
-
-
-def carry_path(path: Path) -> str:
-    """``path`` as the device tool's ``carry`` takes it: relative to the repository root (absolute if outside)."""
-    try:
-        return str(path.resolve().relative_to(ROOT))
-    except ValueError:
-        return str(path)
 
 
 def run_states(cfg) -> list:
@@ -542,22 +559,28 @@ def run_states(cfg) -> list:
 
 
 def status(args: argparse.Namespace) -> int:
+    """Every run of the preset and the next slot; with ``carry`` (``args.write_carry``), the slot's lean resume
+    states written into ``.carry/`` too."""
     from scripts.gpu_plan import next_slot
-    from scripts.gpu_slots import CARRY_BYTES, mib
+    from scripts.gpu_slots import CARRY_BYTES, mib, travelling_bytes
 
     cfg = load_cfg(args)
     rows = run_states(cfg)
     width = max(len(r.label) for r in rows)
     for r in rows:
-        print(f"{r.label:<{width}}  {r.text}" + (f"; carry {carry_path(r.folder)} ({mib(r.size)})" if r.folder else ""))
-    slot = next_slot(cfg, rows, CARRY_BYTES, args.moments, args.deadline_s, args.reserve_s)
-    print(f"next slot carries {len(slot.carry)} unfinished runs, {mib(sum(r.size for r in slot.carry))} of "
-          f"{mib(CARRY_BYTES)}" + (f"; {', '.join(slot.no_room)} wait for a later slot (no room)"
-                                   if slot.no_room else ""))
+        print(f"{r.label:<{width}}  {r.text}" + (f" ({mib(r.size)} here)" if r.folder else ""))
+    tree = travelling_bytes(ROOT)
+    room = CARRY_BYTES - tree
+    slot = next_slot(cfg, rows, room, args.carry_moments, args.deadline_s, args.reserve_s)
+    print(f"next slot carries {len(slot.carry)} unfinished runs, {mib(sum(slot.sizes.values()))} of the "
+          f"{mib(room)} a call leaves beside the working tree and .whl/ ({mib(tree)})"
+          + (f"; {', '.join(slot.no_room)} wait for a later slot (no room)" if slot.no_room else ""))
+    for r in slot.carry:
+        print(f"  carries: {r.label:<{width}}  last.ckpt with {slot.moments[r.label]} moments, best.ckpt stays here")
     if slot.start:
         print(f"  starts: {', '.join(r.label for r in slot.start)}"
               + (f" ({slot.alone})" if slot.alone else f"; resume states expected home: at most "
-                 f"{mib(slot.back_bytes)} of the next call's {mib(CARRY_BYTES)}"))
+                 f"{mib(slot.back_bytes)} of the next call's {mib(room)}"))
     for label, why in slot.wait.items():
         print(f"  waits: {label:<{width}}  {why}")
     if slot.on_cpu:
@@ -566,26 +589,54 @@ def status(args: argparse.Namespace) -> int:
               f"--config {args.config} --preset {cfg.preset} --models {models} --stages train")
     if all(r.state == "done" for r in rows):
         print(f"  every run is done: vitfly reproduce --config {args.config} --preset {cfg.preset} flies them")
-    if slot.carry or slot.start:
-        data_hash = local_data_hash(cfg) if Path(cfg.data).exists() else "HASH"
-        carried = [carry_path(r.folder) for r in slot.carry]
-        if any(Path(c).is_absolute() for c in carried):
-            print("  (outside the repository: the device tool carries only paths inside it)")
-        flags = [f"--deadline-s {args.deadline_s:g}"] if args.deadline_s != DEADLINE_S else []
-        flags += [f"--reserve-s {args.reserve_s:g}"] if args.reserve_s != RESERVE_S else []
-        flags += [f"--moments {args.moments}"] if args.moments != "fp32" else []
-        print(f"  carry: {json.dumps(carried)}\n  command: python3 scripts/gpu.py train "
-              f"--preset {cfg.preset} --out $OUT --expect-data-hash {data_hash}"
-              + (f" --resume-from {' '.join(carried)}" if carried else "")
-              + (f" --runs {' '.join(r.label for r in slot.start)}" if slot.start else "")
-              + "".join(" " + f for f in flags))
+    if not (slot.carry or slot.start):
+        return 0
+    carry_dir = ROOT / args.carry_dir
+    if slot.carry and getattr(args, "write_carry", False):
+        write_carry(slot, carry_dir, room)
+    elif slot.carry:
+        print(f"  first, here: python3 scripts/gpu.py carry --preset {cfg.preset} (the lean states into "
+              f"{args.carry_dir}/)")
+    data_hash = local_data_hash(cfg) if Path(cfg.data).exists() else "HASH"
+    flags = [f"--deadline-s {args.deadline_s:g}"] if args.deadline_s != DEADLINE_S else []
+    flags += [f"--reserve-s {args.reserve_s:g}"] if args.reserve_s != RESERVE_S else []
+    flags += [f"--moments {args.moments}"] if args.moments != "fp32" else []
+    print(f"  carry: {json.dumps(['.whl', args.carry_dir] if slot.carry else ['.whl'])}\n  command: python3 "
+          f"scripts/gpu.py train --preset {cfg.preset} --out $OUT --expect-data-hash {data_hash}"
+          + (f" --resume-from {args.carry_dir}" if slot.carry else "")
+          + (f" --runs {' '.join(r.label for r in slot.start)}" if slot.start else "")
+          + "".join(" " + f for f in flags))
     return 0
+
+
+def write_carry(slot, carry_dir: Path, room: int) -> None:
+    """The slot's carried runs as lean copies in ``carry_dir`` (emptied first): each run folder without
+    best.ckpt, its last.ckpt with the moments the plan chose; refused (nothing left there) beyond ``room``."""
+    import torch
+
+    from scripts.gpu_slots import MARKER, compact_moments, mib, save_atomic, tree_bytes
+
+    if carry_dir.exists():
+        shutil.rmtree(carry_dir)
+    for r in slot.carry:
+        dst = carry_dir / r.label
+        shutil.copytree(r.folder, dst, ignore=shutil.ignore_patterns("best.ckpt", "last.ckpt"))
+        last = torch.load(r.folder / "checkpoints" / "last.ckpt", map_location="cpu", weights_only=True)
+        save_atomic(compact_moments(last, slot.moments[r.label]), dst / "checkpoints" / "last.ckpt")
+        marker = json.loads((dst / MARKER).read_text())
+        (dst / MARKER).write_text(json.dumps({**marker, "carried_moments": slot.moments[r.label]}) + "\n")
+    size = tree_bytes(carry_dir)
+    if size > room:
+        shutil.rmtree(carry_dir)
+        raise SystemExit(f"{carry_dir}: the lean states hold {mib(size)}, more than the {mib(room)} a call leaves; "
+                         "plan with --carry-moments bf16")
+    print(f"  wrote {carry_dir}/ ({mib(size)}): {', '.join(r.label for r in slot.carry)}")
 
 
 def add_commands(sub) -> dict:
     """``train``, ``train-one`` and ``status`` on ``scripts/gpu.py``'s subparsers; returns name -> handler
     (``unpack`` takes the preset flags too: its runs are the pieces ``runs.tar.NNN``)."""
-    for name in ("train", "train-one", "status"):
+    for name in ("train", "train-one", "status", "carry"):
         preset_flags(sub.add_parser(name, help=COMMAND_HELP[name]), required=True)
     t = sub.choices["train"]
     t.add_argument("--out", required=True, help="what comes back: runs.tar.NNN and gpu_reproduce.json")
@@ -597,25 +648,33 @@ def add_commands(sub) -> dict:
     t.add_argument("--collect-workers", type=int, default=14)
     t.add_argument("--threads", type=int, default=2, help="torch threads per run")
     t.add_argument("--stop-after-epochs", type=int, help="epochs each run trains in this slot at most")
-    for p in (t, sub.choices["status"]):  # status plans the slot train runs with them
+    for p in (t, sub.choices["status"], sub.choices["carry"]):  # status plans the slot train runs with them
         p.add_argument("--deadline-s", type=float, default=DEADLINE_S, help="the whole command, from its start")
         p.add_argument("--reserve-s", type=float, default=RESERVE_S, help="left after training for packing")
         p.add_argument("--moments", choices=["fp32", "bf16"], default="fp32",
-                       help="Adam moments of unfinished runs (bf16: half their bytes, no longer an exact resume)")
-    t.add_argument("--return-mib", type=float, default=105.0, help="what the pieces may hold (7 x 15 MiB)")
+                       help="Adam moments of the unfinished runs sent home (bf16: half their bytes, an inexact resume)")
+    for p in (sub.choices["status"], sub.choices["carry"]):
+        p.add_argument("--carry-moments", choices=["auto", "fp32", "bf16"], default="auto",
+                       help="Adam moments of the carried runs (auto: fp32 where they fit beside the working tree)")
+        p.add_argument("--carry-dir", default=CARRY_DIR, help="where carry writes the lean states (in the repository)")
+    sub.choices["carry"].set_defaults(write_carry=True)
+    t.add_argument("--return-mib", type=float, default=60.0,
+                   help="what the pieces may hold (the device tool returns 64 MiB in all, the report and logs too)")
     one = sub.choices["train-one"]
     one.add_argument("--threads", type=int, default=2)
     one.add_argument("--stop-at", type=float, help="Unix time by which the last epoch must have ended")
     one.add_argument("--stop-after-epochs", type=int)
     one.add_argument("--epoch-s", type=float, help="expected epoch length until one is measured")
     one.add_argument("train_one", metavar="LABEL")
-    return {"train": train, "train-one": train_one, "status": status}
+    return {"train": train, "train-one": train_one, "status": status, "carry": status}
 
 
 DEADLINE_S, RESERVE_S = 560.0, 40.0  # a command may run 600 s
 COMMAND_HELP = {"train": "there: collect a preset's data, train named runs until the deadline, pack them",
                 "train-one": "there: one run (a child process of train)",
-                "status": "here: every run of a preset, and the next slot: what it carries and starts"}
+                "status": "here: every run of a preset, and the next slot: what it carries and starts",
+                "carry": "here: status, and the next slot's lean resume states written into .carry/ (carry it)"}
+CARRY_DIR = ".carry"  # the next slot's lean resume states (git ignores it; the device call carries it)
 
 
 def preset_flags(p: argparse.ArgumentParser, required: bool) -> None:

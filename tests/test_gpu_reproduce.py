@@ -11,6 +11,7 @@ next slot carries; unpacking refuses unsafe archives on Pythons without tarfile'
 from __future__ import annotations
 
 import csv
+import hashlib
 import importlib
 import io
 import json
@@ -29,7 +30,8 @@ import torch
 import yaml
 
 from vitfly.datamodules.provenance import dataset_fingerprint
-from vitfly.workflows.pipeline import stage_collect, stage_train
+from vitfly.errors import VitflyError
+from vitfly.workflows.pipeline import TrainStage, check_trained_data, stage_collect, stage_train
 from vitfly.workflows.reproduce_config import load_reproduce_config, train_callbacks, train_stage
 from vitfly.workflows.reproduce_report import _training_table
 from vitfly.zoo import load_network
@@ -157,8 +159,10 @@ def test_a_run_stopped_in_one_slot_resumes_in_the_next_exactly(tmp_path, data, t
     assert gpu.main(["status", *common, "--run-dir", str(home)]) == 0
     listing = capsys.readouterr().out
     assert "vit_lstm-state   unfinished: 1/2 epochs" in listing and "convnet-state    not started" in listing
-    assert re.search(r"next slot carries 1 unfinished runs, 4\d\.\d MiB of 64\.0 MiB", listing)  # ViT+LSTM: 48
-    assert f"--resume-from {run}" in listing
+    # ViT+LSTM's lean state with bf16 moments (28.7e6 bytes) in what the working tree leaves of 64 MiB
+    assert re.search(r"next slot carries 1 unfinished runs, 27\.4 MiB of the 3\d\.\d MiB a call leaves", listing)
+    assert re.search(r"carries: vit_lstm-state +last\.ckpt with bf16 moments", listing)
+    assert "--resume-from .carry" in listing
 
     # a resume state of other data is refused before anything trains
     bad = tmp_path / "bad" / "vit_lstm-state"
@@ -254,6 +258,75 @@ def test_states_too_large_for_the_trip_back_come_home_with_bf16_moments(tmp_path
         assert trained_state(run / "checkpoints" / "last.ckpt")[1][0]["exp_avg"].dtype == dtype
 
 
+def test_a_lean_carry_leaves_the_best_checkpoint_at_home(tmp_path, data, two_epochs, capsys):
+    """``carry`` sends last.ckpt alone. A slot in which no epoch beats the best one at home (made unbeatable
+    here: a best validation loss of 0) finishes without a best.ckpt, and unpack keeps the one at home."""
+    gpu = load_script("gpu")
+    common = ["--config", str(two_epochs), "--preset", "tiny", "--data", str(data)]
+    slot = ["--work", str(tmp_path / "work"), "--collect-workers", "1", "--threads", "1"]
+    home, carry, back1, back2 = (tmp_path / name for name in ("home", "carry", "back1", "back2"))
+    assert gpu.main(["train", *common, "--run-dir", str(tmp_path / "gpu1"), "--out", str(back1), *slot,
+                     "--runs", "convnet-state", "--stop-after-epochs", "1"]) == 0
+    assert gpu.main(["unpack", *common, "--run-dir", str(home), str(back1)]) == 0
+    run = home / "train" / "convnet-state"
+    best_here = (run / "checkpoints" / "best.ckpt").read_bytes()
+
+    capsys.readouterr()
+    assert gpu.main(["carry", *common, "--run-dir", str(home), "--carry-dir", str(carry)]) == 0
+    assert "carries: convnet-state" in capsys.readouterr().out
+    lean = carry / "convnet-state" / "checkpoints"
+    assert sorted(p.name for p in lean.iterdir()) == ["last.ckpt"]
+    state = torch.load(lean / "last.ckpt", map_location="cpu", weights_only=True)
+    assert state["optimizer_states"][0]["state"][0]["exp_avg"].dtype == torch.float32  # fp32: it fits
+    for key, callback in state["callbacks"].items():
+        if key.startswith("ModelCheckpoint"):
+            callback.update(best_model_score=torch.tensor(0.0), kth_value=torch.tensor(0.0),
+                            best_k_models={k: torch.tensor(0.0) for k in callback["best_k_models"]})
+    torch.save(state, lean / "last.ckpt")
+
+    assert gpu.main(["train", *common, "--run-dir", str(tmp_path / "gpu2"), "--out", str(back2), *slot,
+                     "--resume-from", str(carry)]) == 0
+    entry = json.loads((back2 / "gpu_reproduce.json").read_text())["runs"]["convnet-state"]
+    assert (entry["state"], entry["epochs"]) == ("finished", [1, 2])
+    assert "its best epoch is the one at home" in (tmp_path / "work" / "convnet-state.log").read_text()
+
+    with pytest.raises(SystemExit, match="came back without best.ckpt .* is missing; nothing unpacked"):
+        gpu.main(["unpack", *common, "--run-dir", str(tmp_path / "elsewhere"), str(back2)])
+    assert gpu.main(["unpack", *common, "--run-dir", str(home), str(back2)]) == 0
+    done = json.loads((run / "done.json").read_text())
+    assert (done["trained_on"]["best_epoch"], done["trained_on"]["epochs"]) == (1, 2)
+    assert done["trained_on"]["slots"][1]["moments_in"] == "fp32"
+    assert Path(done["checkpoint"]).read_bytes() == best_here
+
+
+def test_a_run_folder_belongs_to_the_data_it_was_trained_on(tmp_path, data, capsys):
+    """The same data path holding other bytes (here: one attribute more; in the project, pybullet's and the
+    native back end's flights) is refused before any training, finished or not; a folder from before the record
+    is adopted aloud."""
+    other = tmp_path / "other.h5"
+    shutil.copy(data, other)
+    with h5py.File(other, "a") as f:
+        f.attrs["collected_again"] = "on another machine"
+    sha16 = {p: hashlib.sha256(p.read_bytes()).hexdigest()[:16] for p in (data, other)}
+    assert sha16[data] != sha16[other]
+
+    run = tmp_path / "run"
+    check_trained_data(run, data)
+    assert json.loads((run / "data.json").read_text())["dataset_hash"] == sha16[data]
+    check_trained_data(run, data)  # the same bytes: nothing to say
+    with pytest.raises(VitflyError, match=f"trained on dataset_hash {sha16[data]}.*now has {sha16[other]}"):
+        stage_train(TrainStage(model="convnet", max_epochs=1), other, run, 1, progress=False)
+    assert not (run / "checkpoints").exists() and not (run / "done.json").exists()
+
+    legacy = tmp_path / "legacy"
+    (legacy / "checkpoints").mkdir(parents=True)
+    (legacy / "checkpoints" / "last.ckpt").write_bytes(b"")
+    capsys.readouterr()
+    check_trained_data(legacy, other)
+    assert "no record of its data" in capsys.readouterr().out
+    assert json.loads((legacy / "data.json").read_text())["dataset_hash"] == sha16[other]
+
+
 def test_a_slot_stops_a_run_before_an_epoch_that_would_end_too_late():
     slots = load_script("gpu_slots")
     assert slots.stop_reason(100.0, None, None, 0, None) is None
@@ -261,6 +334,20 @@ def test_a_slot_stops_a_run_before_an_epoch_that_would_end_too_late():
     assert slots.stop_reason(100.0, 200.0, 90.0, 1, None) is None
     assert "deadline" in slots.stop_reason(100.0, 200.0, 120.0, 1, None)
     assert "--stop-after-epochs" in slots.stop_reason(100.0, 200.0, 1.0, 2, 2)
+
+
+def test_a_slot_judges_the_next_epoch_by_its_steady_epochs(monkeypatch):
+    """Epochs of 97 s (compile and graph capture), 52 s, 55 s from t = 0 against a deadline at 300 s: after the
+    third (t = 204) a fourth of 55 s ends at 259 and starts; judged by the first epoch's 97 s it would not."""
+    slots = load_script("gpu_slots")
+    clock = iter([0.0, 97.0, 149.0, 204.0, 259.0])
+    monkeypatch.setattr(slots.time, "time", lambda: next(clock))
+    stop = slots.SlotStop(stop_at=300.0, max_epochs_this_slot=None, epoch_s=64.0)
+    for _ in range(4):
+        stop.on_train_epoch_start(None, None)
+    assert stop.epoch_s == 55.0 and stop.trained == 3
+    with pytest.raises(slots.SlotEnded, match="about 55 s"):
+        stop.on_train_epoch_start(None, None)  # t = 259: 259 + 55 > 300
 
 
 def test_a_run_still_going_at_the_deadline_is_killed():

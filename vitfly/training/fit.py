@@ -122,9 +122,21 @@ def train_policy(
     trainer.fit(policy, datamodule=data, ckpt_path=str(last) if last.exists() else None, weights_only=True)
     best = checkpoint.best_model_path
     path = Path(best) if best else last
+    if best and not path.exists() and last.exists():
+        raise BestCheckpointMissing(path)
     if not path.exists():
         raise VitflyError(f"{out_dir}: training ended without writing a checkpoint (max_epochs={max_epochs})")
     return path
+
+
+class BestCheckpointMissing(VitflyError):
+    """Training finished, but the best checkpoint its callback names is not on disk: the run was resumed without
+    it (a GPU slot's carry leaves best.ckpt at home, ``scripts/gpu_reproduce.py``) and no later epoch beat it."""
+
+    def __init__(self, path: Path):
+        super().__init__(f"{path}: the best checkpoint is not here (the run was resumed without it) and no epoch "
+                         "since was better; it is where the run came from")
+        self.path = path
 
 
 def load_initial_weights(policy, path: str | os.PathLike, model: str, use_state: bool) -> None:

@@ -157,7 +157,8 @@ def stage_train(t: TrainStage, data: str | Path, train_dir: Path, threads: int =
     ``callbacks`` join the Trainer's (they are not part of the settings a finished run is compared by).
     """
     marker = Path(train_dir) / "done.json"
-    wanted = dataclasses.asdict(t) | {"data": str(data)}
+    wanted = train_settings(t, data)
+    check_trained_data(Path(train_dir), data)
     if marker.exists():
         done = json.loads(marker.read_text())
         if done.get("train") == wanted and Path(done["checkpoint"]).exists():
@@ -177,6 +178,38 @@ def stage_train(t: TrainStage, data: str | Path, train_dir: Path, threads: int =
     write_text(marker, json.dumps({"checkpoint": str(ckpt), "train": wanted}) + "\n")
     print(f"[train] {t.model} (use_state={t.use_state}): {ckpt}")
     return ckpt
+
+
+def train_settings(t: TrainStage, data: str | Path) -> dict:
+    """What a finished run's ``done.json`` records as its settings (a run with other settings is resumed)."""
+    return dataclasses.asdict(t) | {"data": str(data)}
+
+
+def check_trained_data(train_dir: Path, data: str | Path) -> None:
+    """Record in ``train_dir/data.json`` which dataset (its hash) a training uses, or check the record.
+
+    A run folder, finished or not, belongs to the data it was trained on: the same path holding other bytes
+    (collected again, on another physics back end, with more trajectories) is one line naming both hashes,
+    never a silent resume or a "done before". A folder trained before vitfly kept this record is taken as
+    trained on ``data`` and says so.
+    """
+    from vitfly.datamodules.provenance import dataset_fingerprint
+
+    record = train_dir / "data.json"
+    now = dataset_fingerprint(data)
+    if record.exists():
+        then = json.loads(record.read_text())
+        if then.get("dataset_hash") != now["dataset_hash"]:
+            raise VitflyError(
+                f"{train_dir}: trained on dataset_hash {then.get('dataset_hash')} ({then.get('data')}), but {data} "
+                f"now has {now['dataset_hash']}; move the folder aside to train afresh on this data, or point "
+                "the run at the data it was trained on")
+        return
+    if (train_dir / "done.json").exists() or (train_dir / "checkpoints" / "last.ckpt").exists():
+        print(f"[train] {train_dir}: no record of its data (trained before vitfly kept one); taken as trained on "
+              f"{data} ({now['dataset_hash']})")
+    train_dir.mkdir(parents=True, exist_ok=True)
+    write_text(record, json.dumps({"data": str(data), **now}) + "\n")
 
 
 def stage_evaluate(e: EvalStage, out_dir: Path, policies: list[tuple[str, str | None]], progress: bool = True,
