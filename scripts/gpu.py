@@ -4,6 +4,7 @@
     train           there  a `vitfly reproduce` preset's data collected, named runs trained until the deadline
                            -> runs.tar.NNN, gpu_reproduce.json
     status          here   every run of a preset (done, unfinished k/N, not started); the next slot (carry, runs)
+    carry           here   status, and the next slot's lean resume states (last.ckpt alone) into .carry/
     study           there  the shipped weights' study (scripts/gpu_study.yaml) -> study.tar.NNN, study.json, run.log
     evaluate        there  `vitfly evaluate` with the flags after `--`, the policy on the card
                            -> eval.tar.NNN, gpu_evaluate.json

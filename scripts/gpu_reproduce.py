@@ -1,22 +1,24 @@
 """Train runs of a ``vitfly reproduce`` preset on a GPU machine lent in time-boxed slots, and carry them home:
-the ``train``, ``train-one``, ``status`` and runs' ``unpack`` commands of ``scripts/gpu.py`` (the old command
+the ``train``, ``train-one``, ``status``, ``carry`` and runs' ``unpack`` commands of ``scripts/gpu.py`` (the old command
 line ``scripts/gpu_reproduce.py ARGS`` is ``scripts/gpu.py ARGS``).
 
-There (the device machine, 16 cores and one GPU; at most 10 minutes a command; at most 64 MiB carried to it,
-8 files of 16 MiB brought back):
+There (the device machine, 16 cores and one GPU; at most 10 minutes a command; the working tree and the carry
+64 MiB together, 8 files and 64 MiB brought back):
 
     python3 scripts/gpu.py train --preset paper --out DIR --expect-data-hash HASH \\
-        --runs convnet-state vit_lstm-state ... [--resume-from runs/reproduce-paper/train/lstmnet-state ...]
+        --runs convnet-state vit_lstm-state ... [--resume-from .carry]
 
 1. the preset's dataset, collected there with many workers (the collector is deterministic: the file is
    byte-identical to one collected anywhere else with the same settings; ``--expect-data-hash`` refuses to
    train on anything else, and so does every resumed run whose ``unfinished.json`` names another hash);
 2. every run as its own process, all at once (small TBPTT batches leave a GPU mostly idle), through the same
    code as ``vitfly reproduce``'s train stage (recipe, preset overrides, done.json); a run of
-   ``--resume-from`` (a run folder that ``unpack`` left unfinished, carried to the machine) goes on from its
-   ``last.ckpt``. Every epoch ends in ``last.ckpt``; a run does not start an epoch that would end after the
-   deadline (``--stop-after-epochs`` stops it after that many), and one still running then is killed and
-   goes on from its last epoch next time. A run with a done.json is never trained again;
+   ``--resume-from`` (a run folder that ``unpack`` left unfinished, or the lean copy ``carry`` made of it, carried
+   to the machine) goes on from its ``last.ckpt``; carried lean, it has no best.ckpt, and a run that finishes
+   with no epoch better than the best one at home says so in its done.json. Every epoch ends in ``last.ckpt``;
+   a run does not start an epoch that would end after the deadline (``--stop-after-epochs`` stops it after
+   that many), and one still running then is killed and goes on from its last epoch next time. A run with a
+   done.json is never trained again;
 3. the runs packed for the trip back as ``runs.tar.NNN`` (``scripts/gpu_pack.py``; at most ``--return-mib``,
    finished runs first):
    a finished run as metrics, split, cost, done.json and its best checkpoint without optimiser state (network
@@ -30,13 +32,16 @@ Here (the machine that goes on with the preset):
 
     python3 scripts/gpu.py unpack --preset paper DIR
     python3 scripts/gpu.py status --preset paper
+    python3 scripts/gpu.py carry --preset paper       # the next slot's lean states into .carry/
 
 ``unpack`` refuses runs trained on other data than the local dataset, then puts each under the preset's
 ``train/``: a finished one with done.json naming the local checkpoint (``vitfly reproduce`` skips it as done),
 an unfinished one with its ``unfinished.json`` and never a done.json (``vitfly reproduce`` would resume it on
-this machine). A run that has a done.json here is left alone. ``status`` lists every run of the preset (done,
-unfinished k/N epochs, not started) and the next slot (``scripts/gpu_plan.py``): the unfinished run folders it
-carries, within 64 MiB, and the runs it starts, while what comes home still fits the next carry.
+this machine); a run that came back without best.ckpt keeps the one here. A run that has a done.json here is
+left alone. ``status`` lists every run of the preset (done, unfinished k/N epochs, not started) and the next
+slot (``scripts/gpu_plan.py``): the unfinished runs it carries, lean (last.ckpt alone, bf16 moments where fp32
+ones do not fit), within what the working tree leaves of 64 MiB, and the runs it starts, while what comes home
+still fits the next carry; ``carry`` writes those lean states into ``.carry/``.
 A finished run returns without ``last.ckpt``: a later change of its settings trains it again from the start.
 """
 

@@ -5,6 +5,8 @@ An unfinished run travels as its run directory: ``checkpoints/last.ckpt`` (the L
 finished epoch: fp32 weights, the Adam moments, loop and callback state, the random generators' state),
 ``checkpoints/best.ckpt`` (the best epoch so far, network weights in fp16, as every returned run's), metrics,
 split and ``unfinished.json``, the marker this module writes and reads (epochs done, data hash, slots so far).
+It goes back lean (``scripts/gpu.py carry``): without best.ckpt, which stays at home, beside a working tree that
+takes half of the call's 64 MiB (``travelling_bytes``).
 Checkpoints are taken at epoch ends only: Lightning resumes an epoch-end checkpoint exactly, a mid-epoch one
 replays batches.
 """
