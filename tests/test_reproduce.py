@@ -66,9 +66,12 @@ def test_paper_arm_trains_the_original_recipe_on_588_flights():
         p = t.policy_kwargs
         assert (p["lr"], p["warmup_epochs"], p["warmup_start_factor"], p["lr_decay"]) == (1e-4, 5, 0.1, 1.0)
         assert (p["avoid_weight"], p["tbptt_steps"], p["gradient_clip_val"]) == (0.0, None, None)
-        assert (p["static_shapes"], p["compile"]) == (True, "reduce-overhead")  # CUDA graphs; eager on a CPU
         assert (t.data_kwargs["mirror_prob"], t.data_kwargs["max_length"]) == (0.0, None)
-        assert t.data_kwargs["time_bucket_steps"] == 64
+        # CUDA graphs of padded trajectories (eager on a CPU), except for the batch-norm networks not yet started
+        # when the H100 measured them slower so: unpadded and eager, the same loss and gradients
+        graphs = m not in ("lstmnet", "unet_lstm")
+        assert (p["static_shapes"], p["compile"]) == ((True, "reduce-overhead") if graphs else (False, False))
+        assert t.data_kwargs["time_bucket_steps"] == (64 if graphs else None)
         assert t.trainer_kwargs["precision"] == ("bf16-mixed" if m.startswith("vit") else "32-true")
 
 
