@@ -233,6 +233,15 @@ def export_revision(rev: str, dest: Path) -> Path:
     return dest / "tree"
 
 
+def write_json(path: str, device_name: str, samples: list[dict], peaks: dict | None, settings: dict,
+               complete: bool) -> None:
+    """Every sample so far (``complete``: the run ended, peaks and FLOPs added), replaced atomically."""
+    tmp = Path(path).with_suffix(".partial")
+    tmp.write_text(json.dumps({"device": device_name, "complete": complete, "samples": samples, "peaks": peaks,
+                               "settings": {f"{m} {mode}": v for (m, mode), v in settings.items()}}, indent=1))
+    os.replace(tmp, path)
+
+
 def run_sample(code_root: Path, spec: dict) -> dict:
     env = {**os.environ, "PYTHONPATH": f"{code_root}{os.pathsep}{BENCH_DIR}"}
     proc = subprocess.run(
@@ -400,8 +409,12 @@ def main() -> None:
                                     "device": device, "threads": args.threads}  # fmt: skip
                         result = run_sample(sides[side], spec)
                         samples.append({"repeat": r, "model": model, "mode": mode, "side": side, **result})
+                        graphs = (f", {result['graphs']} graphs, {result['cudagraph_skips']} CUDA-graph skips"
+                                  if "graphs" in result else "")
                         print(f"  [{r}] {model} {mode} {side}: {result['fps']:,.1f} frames/s "
-                              f"(warm-up {result['warmup_s']:.1f} s)", file=sys.stderr, flush=True)  # fmt: skip
+                              f"(warm-up {result['warmup_s']:.1f} s{graphs})", file=sys.stderr, flush=True)  # fmt: skip
+                        if args.json:  # what finished survives a timeout
+                            write_json(args.json, device_name, samples, None, settings, complete=False)
     flops = {} if args.fit else {m: flops_per_frame(m) for m in models}
     precisions = {(m, mode): (settings[(m, mode)]["precision"] if args.arm else
                               ("bf16" if mode.endswith("bf16") else "fp32")) for m in models for mode in modes}
@@ -412,9 +425,7 @@ def main() -> None:
             sample["flops_per_frame"] = flops[sample["model"]]
             sample["precision"] = precisions[(sample["model"], sample["mode"])]
     if args.json:
-        Path(args.json).write_text(json.dumps({"device": device_name, "samples": samples, "peaks": peaks,
-                                               "settings": {f"{m} {mode}": v for (m, mode), v in settings.items()}},
-                                              indent=1))
+        write_json(args.json, device_name, samples, peaks, settings, complete=True)
     threads = args.threads or torch.get_num_threads()
     if args.fit:
         what = "vitfly fit, shipped configs"
