@@ -151,7 +151,7 @@ def slim_checkpoint(src: Path, dst: Path) -> dict:
 
 def copy_run_files(d: Path, dst: Path, epochs: int | None) -> None:
     """Metrics (earlier slots' rows joined, rows of an unfinished epoch dropped), split, cost, hparams."""
-    from scripts.gpu_slots import EARLIER_METRICS, merge_metrics
+    from vitfly.training.metrics_csv import EARLIER_METRICS, merge_metrics
 
     merge_metrics([d / EARLIER_METRICS, d / "metrics.csv"], dst / "metrics.csv", epochs)
     for name in RUN_FILES[1:]:

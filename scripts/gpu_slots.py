@@ -13,7 +13,6 @@ replays batches.
 
 from __future__ import annotations
 
-import csv
 import json
 import os
 import shutil
@@ -24,9 +23,9 @@ from pathlib import Path
 from lightning.pytorch.callbacks import Callback
 
 from scripts.gpu_pack import safe_extract, tree_bytes  # noqa: F401  (one unpacking path; the tests call it here)
+from vitfly.training.metrics_csv import set_aside
 
 MARKER = "unfinished.json"
-EARLIER_METRICS = "metrics.earlier.csv"  # earlier slots' rows: Lightning's CSVLogger empties metrics.csv on resume
 CARRY_BYTES = 64 * 2**20  # what the device tool carries to the machine, all paths together
 MOMENTS = ("exp_avg", "exp_avg_sq", "max_exp_avg_sq")  # Adam's per-parameter state besides `step`
 
@@ -143,34 +142,9 @@ def read_marker(run_dir: Path) -> dict:
     return marker
 
 
-def merge_metrics(parts: list[Path], dst: Path, epochs: int | None = None) -> None:
-    """The rows of ``parts`` (CSVLogger files, oldest first) as one CSV in ``dst``, columns united; with
-    ``epochs``, only rows of epochs below it (a killed run's rows of the epoch it did not finish go)."""
-    header: list[str] = []
-    rows: list[dict] = []
-    for part in parts:
-        if not part.exists():
-            continue
-        with open(part, newline="") as f:
-            reader = csv.DictReader(f)
-            header += [c for c in reader.fieldnames or [] if c not in header]
-            rows += [r for r in reader if epochs is None or not r.get("epoch") or float(r["epoch"]) < epochs]
-    if not header:
-        return
-    tmp = dst.with_name(dst.name + ".tmp")
-    with open(tmp, "w", newline="") as f:
-        writer = csv.DictWriter(f, fieldnames=header)
-        writer.writeheader()
-        writer.writerows(rows)
-    os.replace(tmp, dst)
-
-
 def set_metrics_aside(run_dir: Path) -> None:
     """Before a run resumes: its metrics so far into metrics.earlier.csv, which the packing joins again."""
-    current, earlier = run_dir / "metrics.csv", run_dir / EARLIER_METRICS
-    if current.exists():
-        merge_metrics([earlier, current], earlier, epochs_done(run_dir))
-        current.unlink()
+    set_aside(run_dir, epochs_done(run_dir))
 
 
 def travelling_bytes(root: Path) -> int:

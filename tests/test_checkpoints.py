@@ -77,14 +77,22 @@ def test_train_policy_last_holds_the_latest_epoch_and_resumes_there(data_path, t
     assert Path(best_state[0]["best_model_path"]) == out / "checkpoints/best.ckpt"
     assert float(best_state[0]["best_model_score"]) == pytest.approx(float(val_loss[0]))
 
+    # a killed session's row of an epoch it did not finish (epoch 3; last.ckpt holds epoch 2)
+    with open(out / "metrics.csv", "a", newline="") as fh:
+        header = next(csv.reader(open(out / "metrics.csv")))
+        csv.DictWriter(fh, fieldnames=header).writerow({"epoch": 3, "step": 999, "val/loss": -1.0})
+
     # called again with one more epoch: it trains epoch 3 only, from epoch 2's state
     again = Record()
     assert train_policy(data_path, "convnet", out, max_epochs=4, callbacks=[again], **FROZEN) == best_path
     assert again.epochs == [3]
     last = load(out / "checkpoints/last.ckpt")
     assert (last["epoch"], last["global_step"]) == (3, 4 * steps[0])
-    epoch_3 = epoch_column(out / "metrics.csv", "val/loss")  # the resumed run's metrics.csv: epoch 3 only
-    assert list(epoch_3) == [3] and float(epoch_3[3]) >= float(val_loss[0])
+    # Lightning's CSVLogger empties metrics.csv on a resume; the curve stays whole: epochs 0-2 as they were, the
+    # killed session's epoch-3 row gone, epoch 3 as this session trained it
+    curve = epoch_column(out / "metrics.csv", "val/loss")
+    assert sorted(curve) == [0, 1, 2, 3] and all(curve[e] == val_loss[e] for e in (0, 1, 2))
+    assert float(curve[3]) >= float(val_loss[0]) and not (out / "metrics.earlier.csv").exists()
     assert load(out / "checkpoints/best.ckpt")["epoch"] == 0
 
 

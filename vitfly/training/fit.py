@@ -11,6 +11,8 @@ from pathlib import Path
 from typing import Any
 
 from vitfly.errors import VitflyError
+from vitfly.training.metrics_csv import join as join_metrics
+from vitfly.training.metrics_csv import set_aside as set_metrics_aside
 
 MONITOR = "val/loss"
 BEST_NAME = "best"  # checkpoints/best.ckpt: the lowest validation loss so far
@@ -117,9 +119,14 @@ def train_policy(
     last = ckpt_dir / "last.ckpt"
     if last.exists():
         _check_same_run(last, model, use_state)
+        # CSVLogger empties metrics.csv on a resume: the curve so far waits beside it
+        set_metrics_aside(out_dir, _epochs_done(last))
     elif init_weights is not None:
         load_initial_weights(policy, init_weights, model, use_state)
-    trainer.fit(policy, datamodule=data, ckpt_path=str(last) if last.exists() else None, weights_only=True)
+    try:
+        trainer.fit(policy, datamodule=data, ckpt_path=str(last) if last.exists() else None, weights_only=True)
+    finally:
+        join_metrics(out_dir)
     best = checkpoint.best_model_path
     path = Path(best) if best else last
     if best and not path.exists() and last.exists():
@@ -151,6 +158,13 @@ def load_initial_weights(policy, path: str | os.PathLike, model: str, use_state:
             f"not {model!r} (use_state={use_state})"
         )
     policy.net.load_state_dict(load_weights(path).state_dict())
+
+
+def _epochs_done(last: Path) -> int:
+    """Epochs finished by ``last.ckpt`` (memory-mapped: only its header is read)."""
+    import torch
+
+    return int(torch.load(last, map_location="cpu", weights_only=True, mmap=True)["epoch"]) + 1
 
 
 def _check_same_run(last: Path, model: str, use_state: bool) -> None:
