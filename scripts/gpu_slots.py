@@ -151,7 +151,11 @@ def travelling_bytes(root: Path) -> int:
     """What every device call sends besides its carry: the working tree (tracked files and untracked ones git does
     not ignore) and the carried wheels (``.whl/``)."""
     listed = subprocess.run(["git", "-C", str(root), "ls-files", "-z", "--cached", "--others", "--exclude-standard"],
-                            capture_output=True, check=True).stdout.split(b"\0")
+                            capture_output=True)
+    if listed.returncode != 0:  # the device tool sends a git checkout: so does the plan of what it sends
+        raise SystemExit(f"{root}: not a git checkout (git ls-files: {listed.stderr.decode().strip()[:200]}); the "
+                         "slot plan counts the working tree the device tool sends")
+    listed = listed.stdout.split(b"\0")
     files = [root / os.fsdecode(f) for f in listed if f]
     return sum(f.stat().st_size for f in files if f.is_file()) + tree_bytes(root / ".whl") * (root / ".whl").exists()
 

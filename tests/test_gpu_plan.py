@@ -115,3 +115,33 @@ def test_slot_plan_names_models_the_study_trains():
         preset("paper", models=["vit", "lstmnet"], nostate_models=["lstmnet"], cpu_models=["convnet"])
     with pytest.raises(VitflyError, match="train.slot_order must be a list of distinct model names"):
         preset("paper", models=["vit"], nostate_models=[], slot_order=["vit", "vit"])
+
+
+def test_what_a_call_sends_beside_its_carry(tmp_path):
+    """Tracked files, untracked ones git does not ignore and .whl/ (ignored, but always carried): 1000, 300 and 50
+    bytes and the .gitignore (13); an ignored file (a run folder) and a deleted tracked file count nothing."""
+    import subprocess
+
+    from scripts.gpu_slots import travelling_bytes
+
+    plain, repo = tmp_path / "plain", tmp_path / "repo"
+    plain.mkdir()
+    repo.mkdir()
+
+    def git(*args):
+        subprocess.run(["git", "-C", str(repo), *args], check=True, capture_output=True)
+
+    git("init", "-q")
+    (repo / ".gitignore").write_text("runs/\n/.whl/\n")  # 13 bytes, untracked, not ignored
+    (repo / "tracked.bin").write_bytes(b"x" * 1000)
+    (repo / "gone.bin").write_bytes(b"x" * 7)
+    git("add", "tracked.bin", "gone.bin")
+    (repo / "gone.bin").unlink()
+    (repo / "new.txt").write_bytes(b"y" * 300)
+    (repo / "runs").mkdir()
+    (repo / "runs" / "state.ckpt").write_bytes(b"z" * 5000)
+    (repo / ".whl").mkdir()
+    (repo / ".whl" / "a.whl").write_bytes(b"w" * 50)
+    assert travelling_bytes(repo) == 1000 + 300 + 13 + 50
+    with pytest.raises(SystemExit, match="not a git checkout"):
+        travelling_bytes(plain)
