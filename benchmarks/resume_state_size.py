@@ -1,5 +1,5 @@
 """Bytes of an unfinished run's resume state per network: what ``scripts/gpu_reproduce.py`` brings home from one
-GPU slot and carries to the next (the device tool carries at most 64 MiB to the machine).
+GPU slot and carries to the next (the device tool sends the working tree and the carry, 64 MiB together).
 
     python benchmarks/resume_state_size.py [--models convnet vit_lstm ...] [--data data/reproduce_tiny.h5]
 

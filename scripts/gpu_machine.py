@@ -2,7 +2,7 @@
 
 That machine runs Python 3.12 with PyTorch, Lightning, timm, h5py, ONNX Runtime, matplotlib, scipy, rich,
 PyYAML, torchmetrics, TensorBoard and onnxscript preinstalled (/work/.library/device/KINDS.md), reaches no
-package index, and takes at most 64 MiB of carried files. So vitfly runs there from its source tree
+package index, and takes the working tree and carried files, 64 MiB together. So vitfly runs there from its source tree
 (PYTHONPATH, no ``pip install``: its torch pin would ask for a torch the machine cannot fetch), on the native
 physics back end (no pybullet wheel exists for CPython 3.12), with the few pure-Python wheels it lacks carried
 in ``.whl/``:
