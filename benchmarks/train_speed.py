@@ -156,11 +156,12 @@ def time_batches(one_batch, warmup: int, iters: int) -> tuple[float, float]:
 
 def measure_arm(
     model: str, policy_kwargs: dict, batch: int, steps: int, bucket: int | None, precision: str, iters: int,
-    warmup: int, device: str, threads: int | None = None,
+    warmup: int, device: str, threads: int | None = None, profile: bool = False,
 ) -> dict:
     """frames/s (real frames) of ``iters`` batches after ``warmup``, each trained as the arm's recipe trains it:
     one optimiser step per TBPTT chunk (one per batch when ``tbptt_steps`` is None), gradient clipping as set,
-    the batch padded to the ``bucket`` as the datamodule pads it."""
+    the batch padded to the ``bucket`` as the datamodule pads it. ``profile``: also the operators' table of 3
+    more batches (``torch.profiler``, the device's time first), where a step's time goes."""
     import torch
 
     if threads:
@@ -185,10 +186,25 @@ def measure_arm(
     median_s, warmup_s = time_batches(one_batch, warmup, iters)
     from torch._dynamo.utils import counters
 
+    table = profile_table(one_batch, dev) if profile else None
     return {"fps": batch * steps / median_s, "warmup_s": warmup_s, "padded": list(data["mask"].shape),
+            **({"profile": table} if table else {}),
             # compiled graphs, and how often inductor fell back from CUDA graphs (reasons on stderr)
             "graphs": int(counters["stats"]["unique_graphs"]),
             "cudagraph_skips": int(counters["inductor"]["cudagraph_skips"])}
+
+
+def profile_table(one_batch, dev, batches: int = 3, rows: int = 30) -> str:
+    """``torch.profiler``'s operator table over ``batches`` calls of ``one_batch``, sorted by device time (CPU
+    time off CUDA): the launch-bound share shows as CPU time far above the kernels' time."""
+    from torch.profiler import ProfilerActivity, profile
+
+    activities = [ProfilerActivity.CPU] + ([ProfilerActivity.CUDA] if dev.type == "cuda" else [])
+    with profile(activities=activities) as prof:
+        for _ in range(batches):
+            one_batch()
+    sort = "cuda_time_total" if dev.type == "cuda" else "cpu_time_total"
+    return prof.key_averages().table(sort_by=sort, row_limit=rows)
 
 
 def measure_fit(model: str, root: str, data: str, batches: int, skip: int) -> dict:
@@ -364,6 +380,7 @@ def main() -> None:
                         help="the device's peak TFLOP/s for the share column (default: NVIDIA's datasheet for a "
                              "known GPU, n/a otherwise)")
     parser.add_argument("--json", help="also write every sample to this JSON file")
+    parser.add_argument("--profile", help="--arm: also append each sample's torch.profiler table to this file")
     args = parser.parse_args()
     if args.fit and not args.data:
         parser.error("--fit needs --data (a vitfly HDF5 dataset)")
@@ -402,12 +419,16 @@ def main() -> None:
                             spec = {"kind": "arm", "model": model, "policy_kwargs": arm["policy_kwargs"],
                                     "batch": args.batch or arm["batch"], "steps": args.steps or MEAN_FLIGHT_STEPS,
                                     "bucket": arm["bucket"], "precision": arm["precision"], "iters": args.iters,
-                                    "warmup": args.warmup, "device": device, "threads": args.threads}  # fmt: skip
+                                    "warmup": args.warmup, "device": device, "threads": args.threads,
+                                    "profile": bool(args.profile)}  # fmt: skip
                         else:
                             spec = {"kind": "step", "model": model, "mode": mode, "batch": args.batch or 4,
                                     "steps": args.steps or 64, "iters": args.iters, "warmup": args.warmup,
                                     "device": device, "threads": args.threads}  # fmt: skip
                         result = run_sample(sides[side], spec)
+                        if "profile" in result:  # one file for every sample: the device tool returns 8 files
+                            with open(args.profile, "a") as fh:
+                                fh.write(f"== {model} {mode} ({device_name})\n{result.pop('profile')}\n\n")
                         samples.append({"repeat": r, "model": model, "mode": mode, "side": side, **result})
                         graphs = (f", {result['graphs']} graphs, {result['cudagraph_skips']} CUDA-graph skips"
                                   if "graphs" in result else "")

@@ -57,3 +57,13 @@ def test_flops_per_frame_hold_for_any_trajectory_length(bench, monkeypatch, mode
     monkeypatch.setattr(bench, "FLOP_COUNT_STEPS", 96)  # a count on 32 frames holds for longer trajectories
     long = bench.flops_per_frame(model)
     assert short > 0 and long == pytest.approx(short, rel=rel, abs=0)
+
+
+def test_the_profile_names_where_a_step_goes(bench):
+    """Three calls of a step of two matrix products (64 x 32 by 32 x 16, then by 16 x 8): the table counts 6 mm."""
+    import torch
+
+    a, b, c = torch.randn(64, 32), torch.randn(32, 16), torch.randn(16, 8)
+    table = bench.profile_table(lambda: (a @ b) @ c, torch.device("cpu"))
+    row = next(line for line in table.splitlines() if line.strip().startswith("aten::mm"))
+    assert row.split()[-1] == "6"  # "# of Calls", the table's last column
