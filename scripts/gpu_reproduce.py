@@ -594,12 +594,14 @@ def status(args: argparse.Namespace) -> int:
               f"--config {args.config} --preset {cfg.preset} --models {models} --stages train")
     if all(r.state == "done" for r in rows):
         print(f"  every run is done: vitfly reproduce --config {args.config} --preset {cfg.preset} flies them")
+    carry_dir = ROOT / args.carry_dir
+    if getattr(args, "write_carry", False):
+        empty_carry(carry_dir)  # a stale carry would resume an older state
+        if slot.carry:
+            write_carry(slot, carry_dir, room)
     if not (slot.carry or slot.start):
         return 0
-    carry_dir = ROOT / args.carry_dir
-    if slot.carry and getattr(args, "write_carry", False):
-        write_carry(slot, carry_dir, room)
-    elif slot.carry:
+    if slot.carry and not getattr(args, "write_carry", False):
         print(f"  first, here: python3 scripts/gpu.py carry --preset {cfg.preset} (the lean states into "
               f"{args.carry_dir}/)")
     data_hash = local_data_hash(cfg) if Path(cfg.data).exists() else "HASH"
@@ -614,15 +616,26 @@ def status(args: argparse.Namespace) -> int:
     return 0
 
 
+def empty_carry(carry_dir: Path) -> None:
+    """Remove an earlier carry; refused (one line) for a folder that holds anything but carried run folders."""
+    from scripts.gpu_slots import MARKER
+
+    if not carry_dir.exists():
+        return
+    strangers = [p.name for p in carry_dir.iterdir() if not (p / MARKER).exists()]
+    if strangers:
+        raise SystemExit(f"{carry_dir}: holds {', '.join(sorted(strangers)[:3])}, not carried runs; "
+                         "not emptied (name another --carry-dir)")
+    shutil.rmtree(carry_dir)
+
+
 def write_carry(slot, carry_dir: Path, room: int) -> None:
-    """The slot's carried runs as lean copies in ``carry_dir`` (emptied first): each run folder without
+    """The slot's carried runs as lean copies in ``carry_dir`` (``empty_carry`` first): each run folder without
     best.ckpt, its last.ckpt with the moments the plan chose; refused (nothing left there) beyond ``room``."""
     import torch
 
     from scripts.gpu_slots import MARKER, compact_moments, mib, save_atomic, tree_bytes
 
-    if carry_dir.exists():
-        shutil.rmtree(carry_dir)
     for r in slot.carry:
         dst = carry_dir / r.label
         shutil.copytree(r.folder, dst, ignore=shutil.ignore_patterns("best.ckpt", "last.ckpt"))

@@ -276,6 +276,11 @@ def test_a_lean_carry_leaves_the_best_checkpoint_at_home(tmp_path, data, two_epo
     assert "carries: convnet-state" in capsys.readouterr().out
     lean = carry / "convnet-state" / "checkpoints"
     assert sorted(p.name for p in lean.iterdir()) == ["last.ckpt"]
+    stranger = tmp_path / "not_a_carry"
+    (stranger / "notes").mkdir(parents=True)
+    with pytest.raises(SystemExit, match="holds notes, not carried runs; not emptied"):
+        gpu.main(["carry", *common, "--run-dir", str(home), "--carry-dir", str(stranger)])
+    assert (stranger / "notes").exists()
     state = torch.load(lean / "last.ckpt", map_location="cpu", weights_only=True)
     assert state["optimizer_states"][0]["state"][0]["exp_avg"].dtype == torch.float32  # fp32: it fits
     for key, callback in state["callbacks"].items():
