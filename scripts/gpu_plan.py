@@ -76,10 +76,12 @@ def state_bytes(cfg, run, moments: str) -> int:
 
 
 def finishes(r: RunState, train_s: float) -> bool:
-    """Whether an unfinished run's remaining epochs fit ``train_s`` at its last slot's epoch time."""
+    """Whether an unfinished run's remaining epochs fit ``train_s`` at its last slot's epoch times: the first
+    (compilation and CUDA-graph capture) and the steady ones after it."""
     epoch_s = r.marker.get("epoch_s")
+    first = r.marker.get("first_epoch_s", epoch_s)
     left = r.marker.get("max_epochs", 0) - r.marker.get("epochs", 0)
-    return epoch_s is not None and left * epoch_s <= train_s
+    return epoch_s is not None and left > 0 and first + (left - 1) * epoch_s <= train_s
 
 
 def next_slot(cfg, rows: list[RunState], carry_bytes: int, moments: str = "auto",

@@ -62,6 +62,7 @@ sys.path.insert(0, str(ROOT))
 DROPPED_KEYS = ("optimizer_states", "lr_schedulers", "callbacks", "loops")  # resume state, not the network
 RUN_FILES = ("metrics.csv", "split.json", "cost.json", "hparams.yaml", "data.json")  # what travels besides checkpoints
 SLOT_ENDED_RC = 3  # train-one's exit status when the slot ended before the run did
+SLOT_EPOCHS = "slot_epochs.json"  # train-one's measured epoch lengths (s) this slot; not carried home
 REPORT = "gpu_reproduce.json"  # what happened to each run, and the manifest of runs.tar.NNN
 
 
@@ -117,17 +118,21 @@ def train_one(args: argparse.Namespace) -> int:
     fit_before_s = _fit_seconds(train_dir)
     t0 = time.perf_counter()
     try:
-        stage_train(stage, cfg.data, train_dir, args.threads, progress=False, callbacks=[*callbacks, slot])
-    except SlotEnded as stop:  # stage_train writes no done.json: the run is unfinished
-        print(f"[train] {args.train_one}: slot ended after {slot.trained} epochs here: {stop}", flush=True)
+        try:
+            stage_train(stage, cfg.data, train_dir, args.threads, progress=False, callbacks=[*callbacks, slot])
+        except SlotEnded as stop:  # stage_train writes no done.json: the run is unfinished
+            print(f"[train] {args.train_one}: slot ended after {slot.trained} epochs here: {stop}", flush=True)
+            _add_cost(train_dir, time.perf_counter() - t0, fit_before_s)
+            return SLOT_ENDED_RC
+        except BestCheckpointMissing as missing:  # carried lean: its best epoch is at home, none here beat it
+            write_text(train_dir / "done.json", json.dumps({"checkpoint": str(missing.path),
+                                                            "train": train_settings(stage, cfg.data)}) + "\n")
+            print(f"[train] {args.train_one}: finished; its best epoch is the one at home", flush=True)
         _add_cost(train_dir, time.perf_counter() - t0, fit_before_s)
-        return SLOT_ENDED_RC
-    except BestCheckpointMissing as missing:  # carried lean: its best epoch is at home, and none here beat it
-        write_text(train_dir / "done.json", json.dumps({"checkpoint": str(missing.path),
-                                                        "train": train_settings(stage, cfg.data)}) + "\n")
-        print(f"[train] {args.train_one}: finished; its best epoch is the one at home", flush=True)
-    _add_cost(train_dir, time.perf_counter() - t0, fit_before_s)
-    return 0
+        return 0
+    finally:  # the epochs this slot measured, for the next slot's plan (stage_run reads them)
+        if train_dir.exists():
+            write_text(train_dir / SLOT_EPOCHS, json.dumps([round(s, 1) for s in slot.measured]) + "\n")
 
 
 # -- there: packing for the trip back ---------------------------------------------------------------------------
@@ -298,7 +303,8 @@ def start_runs(args, labels: list[str], resumed: dict, stop_at: float, work: Pat
         cmd += ["--run-dir", args.run_dir] if args.run_dir else []
         cmd += ["--data", args.data] if args.data else []
         cmd += ["--stop-after-epochs", str(args.stop_after_epochs)] if args.stop_after_epochs is not None else []
-        hint = resumed[label][1].get("epoch_s") if label in resumed else None
+        marker = resumed[label][1] if label in resumed else {}
+        hint = marker.get("first_epoch_s") or marker.get("epoch_s")  # the slot's first epoch compiles again
         cmd += ["--epoch-s", str(hint)] if hint else []
         with open(work / f"{label}.log", "w") as logfile:  # the child writes through its own copy
             procs[label] = (subprocess.Popen(cmd, stdout=logfile, stderr=subprocess.STDOUT, cwd=ROOT,
@@ -327,7 +333,7 @@ def wait_runs(procs: dict, deadline: float) -> dict[str, tuple[int | None, float
 def stage_run(cfg, label: str, ended: tuple, resumed: dict, data_hash: str, args,
               work: Path) -> tuple[dict, Path | None]:
     """What one run did this slot (the report's entry), and its folder staged for the trip back (or None)."""
-    from scripts.gpu_slots import epochs_done
+    from scripts.gpu_slots import epochs_done, steady_epoch_s
     from vitfly.workflows.reproduce_config import train_stage
 
     d = run_dir(cfg, label)
@@ -346,12 +352,14 @@ def stage_run(cfg, label: str, ended: tuple, resumed: dict, data_hash: str, args
     if after <= before:
         entry.update(state="no progress", note="no epoch finished this slot; nothing returned")
         return entry, None
-    epoch_s = wall_s / (after - before)  # startup included: errs long, so the next slot stops in time
+    measured = json.loads((d / SLOT_EPOCHS).read_text()) if (d / SLOT_EPOCHS).exists() else []
+    epoch_s = wall_s / (after - before)  # start-up included: errs long, so the next slot stops in time
+    steady = {"epoch_s": round(steady_epoch_s(measured), 1), "first_epoch_s": round(measured[0], 1)} if measured \
+        else {"epoch_s": round(epoch_s, 1)}
     run = parse_label(label)
     max_epochs = train_stage(cfg, run.model, run.use_state, seed=run.seed).max_epochs
     marker = {**{k: v for k, v in marker.items() if k != "carried_moments"}, "epochs": after, "max_epochs": max_epochs,
-              "dataset_hash": data_hash, "moments": args.moments, "epoch_s": round(epoch_s, 1),
-              "slots": [*marker["slots"], slot]}
+              "dataset_hash": data_hash, "moments": args.moments, **steady, "slots": [*marker["slots"], slot]}
     entry.update(state="unfinished", max_epochs=marker["max_epochs"])
     stage_unfinished(d, dst, marker, args.moments)
     return entry, dst
@@ -498,6 +506,20 @@ def place_unfinished(run: Path, dst: Path) -> None:
     print(f"{dst}: unfinished, {progress(marker)}")
 
 
+def slots_left(marker: dict) -> str:
+    """``; about N more slots`` at the last slot's epoch time (start-up included, so it errs long) and the
+    training time of a default slot."""
+    from scripts.gpu_plan import STARTUP_S
+
+    left = marker.get("max_epochs", 0) - marker["epochs"]
+    if not marker.get("epoch_s") or left <= 0:
+        return ""
+    first = marker.get("first_epoch_s", marker["epoch_s"])
+    per_slot = max(1, 1 + int((DEADLINE_S - RESERVE_S - STARTUP_S - first) // marker["epoch_s"]))
+    slots = -(-left // per_slot)
+    return f"; about {slots} more slot{'s' * (slots != 1)} of {per_slot} epochs"
+
+
 def progress(marker: dict) -> str:
     minutes = sum(s["wall_s"] for s in marker["slots"]) / 60
     devices = " + ".join(dict.fromkeys(s["device"] for s in marker["slots"]))
@@ -554,7 +576,8 @@ def run_states(cfg) -> list:
             rows.append(RunState(run, "done", "done" + (f" ({on['epochs']} epochs on {on['device']})" if on else "")))
         elif (d / MARKER).exists():
             marker = {**json.loads((d / MARKER).read_text()), "epochs": epochs_done(d), "max_epochs": n}
-            rows.append(RunState(run, "unfinished", f"unfinished: {progress(marker)}", d, tree_bytes(d), marker))
+            rows.append(RunState(run, "unfinished", f"unfinished: {progress(marker)}{slots_left(marker)}", d,
+                                 tree_bytes(d), marker))
         elif epochs_done(d):
             rows.append(RunState(run, "started here",
                                  f"started here: {epochs_done(d)}/{n} epochs (vitfly reproduce resumes it)"))

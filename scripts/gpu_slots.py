@@ -44,6 +44,12 @@ def stop_reason(now: float, stop_at: float | None, epoch_s: float | None, traine
     return None
 
 
+def steady_epoch_s(measured: list[float]) -> float:
+    """The epoch length to plan with: the longest measured epoch, the first left out once there is a second (it
+    carries the compilation and CUDA-graph capture)."""
+    return max(measured[1:] or measured)
+
+
 class SlotStop(Callback):
     """Ends training at an epoch start when the next epoch would not finish before ``stop_at`` (a Unix time),
     or after ``max_epochs_this_slot`` epochs. ``epoch_s``: the expected epoch length before one is measured
@@ -53,14 +59,14 @@ class SlotStop(Callback):
 
     def __init__(self, stop_at: float | None, max_epochs_this_slot: int | None, epoch_s: float | None = None):
         self.stop_at, self.max_epochs_this_slot, self.epoch_s = stop_at, max_epochs_this_slot, epoch_s
-        self.trained, self._started, self._measured = 0, None, []
+        self.trained, self._started, self.measured = 0, None, []  # measured: this slot's epochs, seconds
 
     def on_train_epoch_start(self, trainer, pl_module) -> None:
         now = time.time()
         if self._started is not None:
             self.trained += 1
-            self._measured.append(now - self._started)
-            self.epoch_s = max(self._measured[1:] or self._measured)
+            self.measured.append(now - self._started)
+            self.epoch_s = steady_epoch_s(self.measured)
         reason = stop_reason(now, self.stop_at, self.epoch_s, self.trained, self.max_epochs_this_slot)
         if reason:
             raise SlotEnded(reason)

@@ -90,6 +90,18 @@ def test_a_carried_run_frees_the_next_carry_only_when_it_will_finish(epoch_s, st
     assert labels(slot.carry) == ["vit_lstm-state"] and labels(slot.start) == starts
 
 
+@pytest.mark.parametrize("first_epoch_s, finishes", [(20.0, False), (10.0, True)])
+def test_a_run_finishes_when_its_first_epoch_and_the_steady_ones_fit(first_epoch_s, finishes):
+    """60 epochs left at 7.5 s after a first one of 20 s (compilation): 20 + 59 x 7.5 = 462.5 s > 460 s of
+    training in a slot; after a first of 10 s, 452.5 s fits."""
+    from scripts.gpu_plan import finishes as fits
+
+    cfg = preset("paper")
+    marker = {"epochs": 40, "max_epochs": 100, "epoch_s": 7.5, "first_epoch_s": first_epoch_s}
+    (row,) = [r for r in rows(cfg, unfinished={"vit_lstm-state": (0, marker)}) if r.state == "unfinished"]
+    assert fits(row, 560.0 - 40.0 - 60.0) is finishes
+
+
 def test_carry_in_slot_order_within_the_room():
     cfg = preset("paper")
     big = {"epochs": 1, "max_epochs": 100, "epoch_s": 60.0}

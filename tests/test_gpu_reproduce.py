@@ -146,6 +146,7 @@ def test_a_run_stopped_in_one_slot_resumes_in_the_next_exactly(tmp_path, data, t
     marker = json.loads((run / "unfinished.json").read_text())
     assert (marker["epochs"], marker["max_epochs"], marker["dataset_hash"]) == (1, 2, data_hash)
     assert marker["slots"][0]["device"] == "cpu" and marker["moments"] == "fp32"
+    assert 0 < marker["first_epoch_s"] == marker["epoch_s"]  # one epoch measured: it is the first and the steady
     saved = torch.load(run / "checkpoints" / "last.ckpt", map_location="cpu", weights_only=True)
     assert (saved["epoch"], saved["global_step"]) == (0, 2)
     assert saved["optimizer_states"][0]["state"][0]["exp_avg_sq"].dtype == torch.float32
@@ -159,6 +160,7 @@ def test_a_run_stopped_in_one_slot_resumes_in_the_next_exactly(tmp_path, data, t
     assert gpu.main(["status", *common, "--run-dir", str(home)]) == 0
     listing = capsys.readouterr().out
     assert "vit_lstm-state   unfinished: 1/2 epochs" in listing and "convnet-state    not started" in listing
+    assert "about 1 more slot of" in listing
     # ViT+LSTM's lean state with bf16 moments (28.7e6 bytes) in what the working tree leaves of 64 MiB
     assert re.search(r"next slot carries 1 unfinished runs, 27\.4 MiB of the 3\d\.\d MiB a call leaves", listing)
     assert re.search(r"carries: vit_lstm-state +last\.ckpt with bf16 moments", listing)
