@@ -75,13 +75,21 @@ def state_bytes(cfg, run, moments: str) -> int:
     return params * STATE_BYTES_PER_PARAM[moments] + FOLDER_BYTES
 
 
+def epochs_per_slot(marker: dict, train_s: float) -> int | None:
+    """Epochs that fit ``train_s`` at an unfinished run's last slot's epoch times: the first (compilation and
+    CUDA-graph capture) and the steady ones after it; None before any was measured."""
+    epoch_s = marker.get("epoch_s")
+    if not epoch_s:
+        return None
+    first = marker.get("first_epoch_s", epoch_s)
+    return 0 if first > train_s else 1 + int((train_s - first) // epoch_s)
+
+
 def finishes(r: RunState, train_s: float) -> bool:
-    """Whether an unfinished run's remaining epochs fit ``train_s`` at its last slot's epoch times: the first
-    (compilation and CUDA-graph capture) and the steady ones after it."""
-    epoch_s = r.marker.get("epoch_s")
-    first = r.marker.get("first_epoch_s", epoch_s)
+    """Whether an unfinished run's remaining epochs fit ``train_s``."""
+    per_slot = epochs_per_slot(r.marker, train_s)
     left = r.marker.get("max_epochs", 0) - r.marker.get("epochs", 0)
-    return epoch_s is not None and left > 0 and first + (left - 1) * epoch_s <= train_s
+    return per_slot is not None and 0 < left <= per_slot
 
 
 def next_slot(cfg, rows: list[RunState], carry_bytes: int, moments: str = "auto",

@@ -507,15 +507,14 @@ def place_unfinished(run: Path, dst: Path) -> None:
 
 
 def slots_left(marker: dict) -> str:
-    """``; about N more slots`` at the last slot's epoch time (start-up included, so it errs long) and the
-    training time of a default slot."""
-    from scripts.gpu_plan import STARTUP_S
+    """``; about N more slots`` of a default slot's training time at the last slot's epoch times."""
+    from scripts.gpu_plan import STARTUP_S, epochs_per_slot
 
     left = marker.get("max_epochs", 0) - marker["epochs"]
-    if not marker.get("epoch_s") or left <= 0:
+    per_slot = epochs_per_slot(marker, DEADLINE_S - RESERVE_S - STARTUP_S)
+    if per_slot is None or left <= 0:
         return ""
-    first = marker.get("first_epoch_s", marker["epoch_s"])
-    per_slot = max(1, 1 + int((DEADLINE_S - RESERVE_S - STARTUP_S - first) // marker["epoch_s"]))
+    per_slot = max(1, per_slot)
     slots = -(-left // per_slot)
     return f"; about {slots} more slot{'s' * (slots != 1)} of {per_slot} epochs"
 

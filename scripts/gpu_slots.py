@@ -55,7 +55,7 @@ class SlotStop(Callback):
     or after ``max_epochs_this_slot`` epochs. ``epoch_s``: the expected epoch length before one is measured
     here (the previous slot's); then the longest epoch measured here, validation included, leaving out the
     slot's first once a second is measured: the first carries the one-off compile and CUDA-graph capture (97 s
-    against 52 s for the paper arm's ViT+LSTM on an H100), which would otherwise cost a slot its last epoch."""
+    against 37 s for the paper arm's ViT+LSTM on an H100), which would otherwise cost a slot its last epoch."""
 
     def __init__(self, stop_at: float | None, max_epochs_this_slot: int | None, epoch_s: float | None = None):
         self.stop_at, self.max_epochs_this_slot, self.epoch_s = stop_at, max_epochs_this_slot, epoch_s

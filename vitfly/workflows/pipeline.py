@@ -16,6 +16,7 @@ Stages, each resumable (a rerun skips what is finished):
 from __future__ import annotations
 
 import dataclasses
+import functools
 import json
 import os
 import time
@@ -185,6 +186,14 @@ def train_settings(t: TrainStage, data: str | Path) -> dict:
     return dataclasses.asdict(t) | {"data": str(data)}
 
 
+@functools.lru_cache(maxsize=8)
+def _fingerprint(path: str, size: int, mtime_ns: int) -> dict:
+    """The dataset's fingerprint, read once per file version: a study checks one file for every run."""
+    from vitfly.datamodules.provenance import dataset_fingerprint
+
+    return dataset_fingerprint(path)
+
+
 def check_trained_data(train_dir: Path, data: str | Path) -> None:
     """Record in ``train_dir/data.json`` which dataset (its hash) a training uses, or check the record.
 
@@ -193,10 +202,9 @@ def check_trained_data(train_dir: Path, data: str | Path) -> None:
     never a silent resume or a "done before". A folder trained before vitfly kept this record is taken as
     trained on ``data`` and says so.
     """
-    from vitfly.datamodules.provenance import dataset_fingerprint
-
     record = train_dir / "data.json"
-    now = dataset_fingerprint(data)
+    stat = os.stat(data)
+    now = _fingerprint(os.path.realpath(data), stat.st_size, stat.st_mtime_ns)
     if record.exists():
         then = json.loads(record.read_text())
         if then.get("dataset_hash") != now["dataset_hash"]:
