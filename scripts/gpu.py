@@ -4,7 +4,9 @@
     train           there  a `vitfly reproduce` preset's data collected, named runs trained until the deadline
                            -> runs.tar.NNN, gpu_reproduce.json
     status          here   every run of a preset (done, unfinished k/N, not started); the next slot (carry, runs)
-    carry           here   status, and the next slot's lean resume states (last.ckpt alone) into .carry/
+    carry           here   status, and every run that trained here into carry/PRESET/ (commit it: runs outlive
+                           the session there, and the next slot resumes from it)
+    restore         here   carry/PRESET/ back into the preset's train/ (a new checkout goes on from it)
     study           there  the shipped weights' study (scripts/gpu_study.yaml) -> study.tar.NNN, study.json, run.log
     evaluate        there  `vitfly evaluate` with the flags after `--`, the policy on the card
                            -> eval.tar.NNN, gpu_evaluate.json
@@ -18,7 +20,7 @@ it returns the one way ``scripts/gpu_pack.py`` does: a tar split into pieces of 
 returns 8 files of 16 MiB), its manifest (pieces, SHA-256, contents) inside the command's report JSON; ``unpack``
 joins the pieces, checks them against that manifest and extracts them with the same safe member check. One job
 a file: ``gpu_reproduce.py`` (train, status, the runs' unpack; ``gpu_slots.py``: resume states;
-``gpu_plan.py``: the next slot),
+``gpu_plan.py``: the next slot; ``gpu_carry.py``: carry and restore),
 ``gpu_study.py``, ``gpu_evaluate.py``, ``gpu_machine.py`` (wheels, setup, pipeline). The old command lines keep
 working: ``scripts/gpu_reproduce.py ARGS`` is ``scripts/gpu.py ARGS``, ``scripts/gpu_study.py ARGS`` is
 ``scripts/gpu.py study ARGS``, ``scripts/gpu_machine.sh fetch|run DIR`` is ``wheels`` / ``pipeline --out DIR``.

@@ -2,14 +2,16 @@
 which runs it starts (``scripts/gpu.py status`` prints it, ``scripts/gpu.py carry`` writes the carry).
 
 What a slot does not finish comes home as a resume state, and the next slot must carry it back: the device tool
-sends the working tree (30.7 MiB, most of it the shipped weights) and the carried paths, 64 MiB in all, so a
-carry holds what the tree leaves. The carried state is lean: last.ckpt alone (fp32 weights and Adam's moments,
-in fp32 where they fit, else in bf16: an inexact resume), best.ckpt stays at home. So a slot carries the
-unfinished runs (``train.slot_order`` first) within that room, and starts runs not started yet, in the same
-order, only while the states expected home still fit it: a carried run that will not finish in this slot (its
-last slot's epoch time says so) counts with its size, a new run with its state's size estimated from its
-parameter count. A run whose state could never travel (ResNet-18's) starts only alone, and must finish inside
-the command. Runs of ``train.cpu_models`` train on a CPU and are left out, as are runs being trained here
+sends the working tree (30.7 MiB without carry/, most of it the shipped weights), carry/ and .whl/, 64 MiB in
+all, so the carry holds what the rest leaves, less what it keeps for runs that do not go to this slot (runs
+trained on a CPU, finished runs' weights). A carried state is lean (``scripts/gpu_carry.py``): last.* (fp32
+weights and Adam's moments, in fp32 where they fit, else in bf16: an inexact resume), and best.* in fp16 only
+where the preset flies the best epoch. So a slot carries the unfinished runs (``train.slot_order`` first) within
+that room, and starts runs not started yet, in the same order, only while the states expected home still fit it: a
+carried run that will not finish in this slot (its last slot's epoch time says so) counts with its size, a new run
+with its state's size estimated from its parameter count. A run whose state could never travel (ResNet-18's)
+starts only alone, and must finish inside the command. Runs of ``train.cpu_models`` train on a CPU and are left
+out, as are runs being trained here
 (``vitfly reproduce`` resumes them).
 """
 
@@ -18,7 +20,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from pathlib import Path
 
-# a carried state: last.ckpt's fp32 weights and Adam's two moments per parameter (best.ckpt stays at home)
+# a carried state: last.*'s fp32 weights and Adam's two moments per parameter (best.* adds 2 where it is kept)
 STATE_BYTES_PER_PARAM = {"fp32": 4 + 2 * 4, "bf16": 4 + 2 * 2}
 FOLDER_BYTES = 192 * 1024  # the rest of a run folder: checkpoint headers, metrics, split, marker (0.1-0.2 MiB
 # above the tensors, benchmarks/resume_state_size.py)
@@ -65,14 +67,28 @@ def slot_rank(cfg, run) -> tuple:
     return (run.seed is not None, not run.use_state, order.index(run.model), run.seed or 0)
 
 
-def state_bytes(cfg, run, moments: str) -> int:
-    """The carried resume state of ``run``, estimated from its network's parameter count."""
+def parameters(cfg, run) -> int:
+    """The parameter count of ``run``'s network, as its recipe builds it."""
     from vitfly.workflows.reproduce_config import train_stage
     from vitfly.zoo.registry import create_model
 
     kwargs = train_stage(cfg, run.model, run.use_state, seed=run.seed).policy_kwargs.get("model_kwargs") or {}
-    params = sum(p.numel() for p in create_model(run.model, use_state=run.use_state, **kwargs).parameters())
-    return params * STATE_BYTES_PER_PARAM[moments] + FOLDER_BYTES
+    return sum(p.numel() for p in create_model(run.model, use_state=run.use_state, **kwargs).parameters())
+
+
+def max_epochs(cfg, run) -> int:
+    from vitfly.workflows.reproduce_config import train_stage
+
+    return train_stage(cfg, run.model, run.use_state, seed=run.seed).max_epochs
+
+
+def state_bytes(cfg, run, moments: str) -> int:
+    """The carried resume state of ``run``, estimated from its network's parameter count: last.* and, where the
+    preset flies the best epoch (``select: best``), best.* in fp16 (``scripts/gpu_carry.py``)."""
+    from vitfly.workflows.reproduce_config import train_stage
+
+    best = train_stage(cfg, run.model, run.use_state, seed=run.seed).select == "best"
+    return parameters(cfg, run) * (STATE_BYTES_PER_PARAM[moments] + 2 * best) + FOLDER_BYTES
 
 
 def epochs_per_slot(marker: dict, train_s: float) -> int | None:
@@ -93,9 +109,11 @@ def finishes(r: RunState, train_s: float) -> bool:
 
 
 def next_slot(cfg, rows: list[RunState], carry_bytes: int, moments: str = "auto",
-              deadline_s: float = 560.0, reserve_s: float = 40.0) -> Slot:
+              deadline_s: float = 560.0, reserve_s: float = 40.0, kept_bytes: int = 0) -> Slot:
     """The next slot for the runs ``rows`` (every run of the preset, as ``run_states`` lists them); ``carry_bytes``:
-    the room a call leaves the carry; ``moments``: what the carried moments may be (auto: fp32 where they fit)."""
+    the room a call leaves the carry; ``moments``: what the carried moments may be (auto: fp32 where they fit);
+    ``kept_bytes``: what carry/ keeps for runs that do not go to the slot, already taken from ``carry_bytes``
+    (runs on a CPU, finished runs' weights)."""
     from scripts.gpu_slots import mib
 
     slot = Slot()
@@ -117,7 +135,10 @@ def next_slot(cfg, rows: list[RunState], carry_bytes: int, moments: str = "auto"
             slot.on_cpu.append(r)
             continue
         size = state_bytes(cfg, r.run, MOMENTS[moments][-1])  # the next carry may shrink its moments
-        if size > carry_bytes:  # it cannot come back unfinished: alone, with the whole command
+        if carry_bytes < size <= carry_bytes + kept_bytes:
+            slot.wait[r.label] = (f"state {mib(size)}: would not fit the next carry beside what carry/ keeps for "
+                                  f"other runs ({mib(kept_bytes)}); finish those first")
+        elif size > carry_bytes:  # it cannot come back unfinished: alone, with the whole command
             if not slot.carry and not slot.start:
                 slot.start.append(r)
                 slot.alone = f"{r.label}'s state ({mib(size)}) cannot travel: it must finish inside this command"

@@ -6,19 +6,19 @@ There (the device machine, 16 cores and one GPU; at most 10 minutes a command; t
 64 MiB together, 8 files and 64 MiB brought back):
 
     python3 scripts/gpu.py train --preset paper --out DIR --expect-data-hash HASH \\
-        --runs convnet-state vit_lstm-state ... [--resume-from .carry]
+        --runs convnet-state vit_lstm-state ... [--resume-from carry/paper]
 
 1. the preset's dataset, collected there with many workers (the collector is deterministic: the file is
    byte-identical to one collected anywhere else with the same settings; ``--expect-data-hash`` refuses to
    train on anything else, and so does every resumed run whose ``unfinished.json`` names another hash);
 2. every run as its own process, all at once (small TBPTT batches leave a GPU mostly idle), through the same
    code as ``vitfly reproduce``'s train stage (recipe, preset overrides, done.json); a run of
-   ``--resume-from`` (a run folder that ``unpack`` left unfinished, or the lean copy ``carry`` made of it, carried
-   to the machine) goes on from its ``last.ckpt``; carried lean, it has no best.ckpt, and a run that finishes
-   with no epoch better than the best one at home says so in its done.json. Every epoch ends in ``last.ckpt``;
-   a run does not start an epoch that would end after the deadline (``--stop-after-epochs`` stops it after
-   that many), and one still running then is killed and goes on from its last epoch next time. A run with a
-   done.json is never trained again;
+   ``--resume-from`` (a run folder that ``unpack`` left unfinished, or the lean copy ``carry`` kept of it in
+   ``carry/<preset>/``, which travels with the working tree) goes on from its last epoch; a run that finishes
+   with no epoch better than a best one it was carried without says so in its done.json. Every epoch ends in
+   ``last.ckpt``; a run does not start an epoch that would end after the deadline (``--stop-after-epochs``
+   stops it after that many), and one still running then is killed and goes on from its last epoch next time.
+   A run with a done.json is never trained again;
 3. the runs packed for the trip back as ``runs.tar.NNN`` (``scripts/gpu_pack.py``; at most ``--return-mib``,
    finished runs first):
    a finished run as metrics, split, cost, done.json and its best checkpoint without optimiser state (network
@@ -32,7 +32,7 @@ Here (the machine that goes on with the preset):
 
     python3 scripts/gpu.py unpack --preset paper DIR
     python3 scripts/gpu.py status --preset paper
-    python3 scripts/gpu.py carry --preset paper       # the next slot's lean states into .carry/
+    python3 scripts/gpu.py carry --preset paper       # every run that trained here into carry/paper/; commit it
 
 ``unpack`` refuses runs trained on other data than the local dataset, then puts each under the preset's
 ``train/``: a finished one with done.json naming the local checkpoint (``vitfly reproduce`` skips it as done),
@@ -41,7 +41,8 @@ this machine); a run that came back without best.ckpt keeps the one here. A run 
 left alone. ``status`` lists every run of the preset (done, unfinished k/N epochs, not started) and the next
 slot (``scripts/gpu_plan.py``): the unfinished runs it carries, lean (last.ckpt alone, bf16 moments where fp32
 ones do not fit), within what the working tree leaves of 64 MiB, and the runs it starts, while what comes home
-still fits the next carry; ``carry`` writes those lean states into ``.carry/``.
+still fits the next carry; ``carry`` keeps every run that trained here in ``carry/<preset>/``
+(``scripts/gpu_carry.py``), ``restore`` puts them back.
 A finished run returns without ``last.ckpt``: a later change of its settings trains it again from the start.
 """
 
@@ -138,8 +139,9 @@ def train_one(args: argparse.Namespace) -> int:
 # -- there: packing for the trip back ---------------------------------------------------------------------------
 
 
-def slim_checkpoint(src: Path, dst: Path) -> dict:
-    """``src`` without optimiser/loop state, its state dict only the network's weights, floating ones in fp16."""
+def slim(src: Path) -> dict:
+    """Checkpoint ``src`` without optimiser/loop state, its state dict only the network's weights, floating ones
+    in fp16."""
     import torch
 
     from vitfly.zoo.checkpoint import NET_PREFIX, network_from_checkpoint_dict
@@ -150,6 +152,14 @@ def slim_checkpoint(src: Path, dst: Path) -> dict:
         obj.pop(key, None)
     net = network_from_checkpoint_dict(obj, str(src))
     obj["state_dict"] = {NET_PREFIX + k: v for k, v in fp16_state_dict(net, str(src)).items()}
+    return obj
+
+
+def slim_checkpoint(src: Path, dst: Path) -> dict:
+    """``slim(src)`` saved as ``dst``; returns its epoch and step."""
+    import torch
+
+    obj = slim(src)
     torch.save(obj, dst)
     return {"epoch": int(obj.get("epoch", -1)), "global_step": int(obj.get("global_step", -1))}
 
@@ -260,13 +270,18 @@ def resume_sources(paths: list[str], preset: str) -> dict[str, tuple[Path, dict]
 
 
 def place_resumed(cfg, resumed: dict[str, tuple[Path, dict]]) -> None:
-    """Each resumed run into the preset's train dir here, its callbacks pointed there, its metrics set aside."""
+    """Each resumed run into the preset's train dir here (a carried one made a run folder again), its callbacks
+    pointed there, its metrics set aside."""
+    from scripts.gpu_carry import is_carried, materialize
     from scripts.gpu_slots import copy_run, epochs_done, relocate_file, set_metrics_aside
 
     for label, (src, marker) in resumed.items():
         dst = run_dir(cfg, label)
         copy_run(src, dst)
-        relocate_file(dst / "checkpoints" / "last.ckpt")
+        if is_carried(dst):
+            materialize(dst)
+        else:
+            relocate_file(dst / "checkpoints" / "last.ckpt")
         set_metrics_aside(dst)
         marker["epochs"] = epochs_done(dst)  # the checkpoint's, should a resume at home have gone on since
 
@@ -572,22 +587,24 @@ def run_states(cfg) -> list:
         n = train_stage(cfg, run.model, run.use_state, seed=run.seed).max_epochs
         if (d / "done.json").exists():
             on = json.loads((d / "done.json").read_text()).get("trained_on")
-            rows.append(RunState(run, "done", "done" + (f" ({on['epochs']} epochs on {on['device']})" if on else "")))
+            rows.append(RunState(run, "done", "done" + (f" ({on['epochs']} epochs on {on['device']})" if on else ""),
+                                 d))
         elif (d / MARKER).exists():
             marker = {**json.loads((d / MARKER).read_text()), "epochs": epochs_done(d), "max_epochs": n}
             rows.append(RunState(run, "unfinished", f"unfinished: {progress(marker)}{slots_left(marker)}", d,
                                  tree_bytes(d), marker))
         elif epochs_done(d):
             rows.append(RunState(run, "started here",
-                                 f"started here: {epochs_done(d)}/{n} epochs (vitfly reproduce resumes it)"))
+                                 f"started here: {epochs_done(d)}/{n} epochs (vitfly reproduce resumes it)", d))
         else:
             rows.append(RunState(run, "not started", "not started"))
     return rows
 
 
 def status(args: argparse.Namespace) -> int:
-    """Every run of the preset and the next slot; with ``carry`` (``args.write_carry``), the slot's lean resume
-    states written into ``.carry/`` too."""
+    """Every run of the preset and the next slot; with ``carry`` (``args.write_carry``), every run that trained here
+    written into ``carry/<preset>/`` too (``scripts/gpu_carry.py``), the slot's with the moments it plans."""
+    from scripts.gpu_carry import parked_size, write_carry
     from scripts.gpu_plan import next_slot
     from scripts.gpu_slots import CARRY_BYTES, mib, travelling_bytes
 
@@ -595,15 +612,25 @@ def status(args: argparse.Namespace) -> int:
     rows = run_states(cfg)
     width = max(len(r.label) for r in rows)
     for r in rows:
-        print(f"{r.label:<{width}}  {r.text}" + (f" ({mib(r.size)} here)" if r.folder else ""))
-    tree = travelling_bytes(ROOT)
-    room = CARRY_BYTES - tree
-    slot = next_slot(cfg, rows, room, args.carry_moments, args.deadline_s, args.reserve_s)
+        print(f"{r.label:<{width}}  {r.text}" + (f" ({mib(r.size)} here)" if r.size else ""))
+    carry_dir = ROOT / args.carry_dir / cfg.preset
+    tree = travelling_bytes(ROOT, leave_out=carry_dir)
+    # kept in the carry but not for this slot: finished runs' weights, and runs trained on a CPU, counted as the
+    # weights they will be (a CPU run goes on in the next session; GPU slots are rare, so they do not wait for it)
+    others = [r for r in rows if r.folder is not None and (r.state == "done" or r.run.model in cfg.train.cpu_models)]
+    kept = sum(parked_size(cfg, r, "done") for r in others)
+    room = CARRY_BYTES - tree - kept
+    slot = next_slot(cfg, [r for r in rows if r.run.model not in cfg.train.cpu_models or r.state == "not started"],
+                     room, args.carry_moments, args.deadline_s, args.reserve_s, kept)
+    for r in others:
+        if r.state != "done":
+            print(f"  ({r.label}, on a CPU, is counted as the weights it will be: {mib(parked_size(cfg, r, 'done'))}; "
+                  f"its state now, {mib(parked_size(cfg, r, 'bf16'))}, must finish before the slot after next)")
     print(f"next slot carries {len(slot.carry)} unfinished runs, {mib(sum(slot.sizes.values()))} of the "
-          f"{mib(room)} a call leaves beside the working tree and .whl/ ({mib(tree)})"
-          + (f"; {', '.join(slot.no_room)} wait for a later slot (no room)" if slot.no_room else ""))
+          f"{mib(room)} a call leaves beside the working tree and .whl/ ({mib(tree)}) and the rest of the carry "
+          f"({mib(kept)})" + (f"; {', '.join(slot.no_room)} wait for a later slot (no room)" if slot.no_room else ""))
     for r in slot.carry:
-        print(f"  carries: {r.label:<{width}}  last.ckpt with {slot.moments[r.label]} moments, best.ckpt stays here")
+        print(f"  carries: {r.label:<{width}}  last.* with {slot.moments[r.label]} moments")
     if slot.start:
         print(f"  starts: {', '.join(r.label for r in slot.start)}"
               + (f" ({slot.alone})" if slot.alone else f"; resume states expected home: at most "
@@ -616,67 +643,29 @@ def status(args: argparse.Namespace) -> int:
               f"--config {args.config} --preset {cfg.preset} --models {models} --stages train")
     if all(r.state == "done" for r in rows):
         print(f"  every run is done: vitfly reproduce --config {args.config} --preset {cfg.preset} flies them")
-    carry_dir = ROOT / args.carry_dir
     if getattr(args, "write_carry", False):
-        empty_carry(carry_dir)  # a stale carry would resume an older state
-        if slot.carry:
-            write_carry(slot, carry_dir, room)
+        write_carry(cfg, rows, slot, carry_dir, CARRY_BYTES - tree)
     if not (slot.carry or slot.start):
         return 0
+    here = carry_dir.relative_to(ROOT) if carry_dir.is_relative_to(ROOT) else carry_dir
     if slot.carry and not getattr(args, "write_carry", False):
-        print(f"  first, here: python3 scripts/gpu.py carry --preset {cfg.preset} (the lean states into "
-              f"{args.carry_dir}/)")
+        print(f"  first, here: python3 scripts/gpu.py carry --preset {cfg.preset} (into {here}/, then commit)")
     data_hash = local_data_hash(cfg) if Path(cfg.data).exists() else "HASH"
     flags = [f"--deadline-s {args.deadline_s:g}"] if args.deadline_s != DEADLINE_S else []
     flags += [f"--reserve-s {args.reserve_s:g}"] if args.reserve_s != RESERVE_S else []
     flags += [f"--moments {args.moments}"] if args.moments != "fp32" else []
-    print(f"  carry: {json.dumps(['.whl', args.carry_dir] if slot.carry else ['.whl'])}\n  command: python3 "
+    print(f"  carry: {json.dumps(['.whl'])} ({here}/ travels with the working tree)\n  command: python3 "
           f"scripts/gpu.py train --preset {cfg.preset} --out $OUT --expect-data-hash {data_hash}"
-          + (f" --resume-from {args.carry_dir}" if slot.carry else "")
+          + (f" --resume-from {here}" if slot.carry else "")
           + (f" --runs {' '.join(r.label for r in slot.start)}" if slot.start else "")
           + "".join(" " + f for f in flags))
     return 0
 
 
-def empty_carry(carry_dir: Path) -> None:
-    """Remove an earlier carry; refused (one line) for a folder that holds anything but carried run folders."""
-    from scripts.gpu_slots import MARKER
-
-    if not carry_dir.exists():
-        return
-    strangers = [p.name for p in carry_dir.iterdir() if not (p / MARKER).exists()]
-    if strangers:
-        raise SystemExit(f"{carry_dir}: holds {', '.join(sorted(strangers)[:3])}, not carried runs; "
-                         "not emptied (name another --carry-dir)")
-    shutil.rmtree(carry_dir)
-
-
-def write_carry(slot, carry_dir: Path, room: int) -> None:
-    """The slot's carried runs as lean copies in ``carry_dir`` (``empty_carry`` first): each run folder without
-    best.ckpt, its last.ckpt with the moments the plan chose; refused (nothing left there) beyond ``room``."""
-    import torch
-
-    from scripts.gpu_slots import MARKER, compact_moments, mib, save_atomic, tree_bytes
-
-    for r in slot.carry:
-        dst = carry_dir / r.label
-        shutil.copytree(r.folder, dst, ignore=shutil.ignore_patterns("best.ckpt", "last.ckpt"))
-        last = torch.load(r.folder / "checkpoints" / "last.ckpt", map_location="cpu", weights_only=True)
-        save_atomic(compact_moments(last, slot.moments[r.label]), dst / "checkpoints" / "last.ckpt")
-        marker = json.loads((dst / MARKER).read_text())
-        (dst / MARKER).write_text(json.dumps({**marker, "carried_moments": slot.moments[r.label]}) + "\n")
-    size = tree_bytes(carry_dir)
-    if size > room:
-        shutil.rmtree(carry_dir)
-        raise SystemExit(f"{carry_dir}: the lean states hold {mib(size)}, more than the {mib(room)} a call leaves; "
-                         "plan with --carry-moments bf16")
-    print(f"  wrote {carry_dir}/ ({mib(size)}): {', '.join(r.label for r in slot.carry)}")
-
-
 def add_commands(sub) -> dict:
     """``train``, ``train-one`` and ``status`` on ``scripts/gpu.py``'s subparsers; returns name -> handler
     (``unpack`` takes the preset flags too: its runs are the pieces ``runs.tar.NNN``)."""
-    for name in ("train", "train-one", "status", "carry"):
+    for name in ("train", "train-one", "status", "carry", "restore"):
         preset_flags(sub.add_parser(name, help=COMMAND_HELP[name]), required=True)
     t = sub.choices["train"]
     t.add_argument("--out", required=True, help="what comes back: runs.tar.NNN and gpu_reproduce.json")
@@ -696,7 +685,9 @@ def add_commands(sub) -> dict:
     for p in (sub.choices["status"], sub.choices["carry"]):
         p.add_argument("--carry-moments", choices=["auto", "fp32", "bf16"], default="auto",
                        help="Adam moments of the carried runs (auto: fp32 where they fit beside the working tree)")
-        p.add_argument("--carry-dir", default=CARRY_DIR, help="where carry writes the lean states (in the repository)")
+    for p in (sub.choices["status"], sub.choices["carry"], sub.choices["restore"]):
+        p.add_argument("--carry-dir", default=CARRY_DIR,
+                       help="the runs kept in the repository, one folder per preset (an absolute path: elsewhere)")
     sub.choices["carry"].set_defaults(write_carry=True)
     t.add_argument("--return-mib", type=float, default=60.0,
                    help="what the pieces may hold (the device tool returns 64 MiB in all, the report and logs too)")
@@ -706,15 +697,18 @@ def add_commands(sub) -> dict:
     one.add_argument("--stop-after-epochs", type=int)
     one.add_argument("--epoch-s", type=float, help="expected epoch length until one is measured")
     one.add_argument("train_one", metavar="LABEL")
-    return {"train": train, "train-one": train_one, "status": status, "carry": status}
+    from scripts.gpu_carry import restore
+
+    return {"train": train, "train-one": train_one, "status": status, "carry": status, "restore": restore}
 
 
 DEADLINE_S, RESERVE_S = 560.0, 40.0  # a command may run 600 s
 COMMAND_HELP = {"train": "there: collect a preset's data, train named runs until the deadline, pack them",
                 "train-one": "there: one run (a child process of train)",
                 "status": "here: every run of a preset, and the next slot: what it carries and starts",
-                "carry": "here: status, and the next slot's lean resume states written into .carry/ (carry it)"}
-CARRY_DIR = ".carry"  # the next slot's lean resume states (git ignores it; the device call carries it)
+                "carry": "here: status, and every run that trained here into carry/PRESET/ (commit it)",
+                "restore": "here: carry/PRESET/ back into the preset's train/ (a new checkout goes on from it)"}
+CARRY_DIR = "carry"  # carry/<preset>/: the runs kept in the repository (scripts/gpu_carry.py)
 
 
 def preset_flags(p: argparse.ArgumentParser, required: bool) -> None:

@@ -5,8 +5,8 @@ An unfinished run travels as its run directory: ``checkpoints/last.ckpt`` (the L
 finished epoch: fp32 weights, the Adam moments, loop and callback state, the random generators' state),
 ``checkpoints/best.ckpt`` (the best epoch so far, network weights in fp16, as every returned run's), metrics,
 split and ``unfinished.json``, the marker this module writes and reads (epochs done, data hash, slots so far).
-It goes back lean (``scripts/gpu.py carry``): without best.ckpt, which stays at home, beside a working tree that
-takes half of the call's 64 MiB (``travelling_bytes``).
+It goes back lean, kept in the repository (``scripts/gpu_carry.py``): without best.ckpt where the preset flies its
+last epoch, beside a working tree that takes half of the call's 64 MiB (``travelling_bytes``).
 Checkpoints are taken at epoch ends only: Lightning resumes an epoch-end checkpoint exactly, a mid-epoch one
 replays batches.
 """
@@ -153,9 +153,10 @@ def set_metrics_aside(run_dir: Path) -> None:
     set_aside(run_dir, epochs_done(run_dir))
 
 
-def travelling_bytes(root: Path) -> int:
-    """What every device call sends besides its carry: the working tree (tracked files and untracked ones git does
-    not ignore) and the carried wheels (``.whl/``)."""
+def travelling_bytes(root: Path, leave_out: Path | None = None) -> int:
+    """What every device call sends besides what it carries: the working tree (tracked files and untracked ones
+    git does not ignore) and the carried wheels (``.whl/``); without the files under ``leave_out`` (the carry,
+    part of the tree, planned apart)."""
     listed = subprocess.run(["git", "-C", str(root), "ls-files", "-z", "--cached", "--others", "--exclude-standard"],
                             capture_output=True)
     if listed.returncode != 0:  # the device tool sends a git checkout: so does the plan of what it sends
@@ -163,6 +164,8 @@ def travelling_bytes(root: Path) -> int:
                          "slot plan counts the working tree the device tool sends")
     listed = listed.stdout.split(b"\0")
     files = [root / os.fsdecode(f) for f in listed if f]
+    if leave_out is not None:
+        files = [f for f in files if not f.resolve().is_relative_to(leave_out.resolve())]
     return sum(f.stat().st_size for f in files if f.is_file()) + tree_bytes(root / ".whl") * (root / ".whl").exists()
 
 

@@ -19,6 +19,7 @@ from test_datamodule import write_dataset
 from test_fit_cli import fit_args, run_dir_of
 
 from vitfly.cli import main
+from vitfly.errors import VitflyError
 from vitfly.training import train_policy
 
 FROZEN = dict(batch_size=2, progress_bar=False, policy_kwargs={"tbptt_steps": 8, "lr": 0.0, "cpu_threads": 1})
@@ -94,6 +95,21 @@ def test_train_policy_last_holds_the_latest_epoch_and_resumes_there(data_path, t
     assert sorted(curve) == [0, 1, 2, 3] and all(curve[e] == val_loss[e] for e in (0, 1, 2))
     assert float(curve[3]) >= float(val_loss[0]) and not (out / "metrics.earlier.csv").exists()
     assert load(out / "checkpoints/best.ckpt")["epoch"] == 0
+
+
+def test_select_last_hands_on_the_final_epoch_and_keeps_no_best(data_path, tmp_path):
+    """``select="last"`` (the paper preset, as the original code): the validation loss never improves on epoch
+    0's here, yet the checkpoint handed on is epoch 2's, and no best.ckpt is written."""
+    out = tmp_path / "run"
+    handed_on = train_policy(data_path, "convnet", out, max_epochs=3, select="last", **FROZEN)
+    assert handed_on == out / "checkpoints/last.ckpt"
+    assert sorted(p.name for p in (out / "checkpoints").iterdir()) == ["last.ckpt"]
+    last = load(out / "checkpoints/last.ckpt")
+    assert last["epoch"] == 2
+    assert not any(k.startswith("ModelCheckpoint{'monitor': 'val/loss'") for k in last["callbacks"])
+    with pytest.raises(VitflyError, match="select: expected one of best, last, got 'median'"):
+        train_policy(data_path, "convnet", tmp_path / "other", max_epochs=1, select="median", **FROZEN)
+    assert not (tmp_path / "other").exists()  # refused before anything is written
 
 
 @pytest.mark.parametrize(

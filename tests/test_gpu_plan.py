@@ -1,6 +1,7 @@
 """scripts/gpu_plan.py: the next GPU slot of the paper presets, worked out by hand.
 
-A carried resume state is last.ckpt alone (best.ckpt stays at home): 12 bytes a parameter with fp32 Adam moments
+A carried resume state of the paper presets is last.* alone (the paper arm flies its last epoch, so it keeps no
+best one; the vitfly arm's best.* would add 2 bytes a parameter): 12 bytes a parameter with fp32 Adam moments
 (fp32 weights 4 + two moments 8) and 8 with bf16 moments, plus 192 KiB for the rest of the run folder (checkpoint
 headers, metrics); the parameter counts are the ones the recipes state (configs/fit/paper/*.yaml). A call
 carries 64 MiB with the working tree (30.7 MiB, 2026-11-28) and .whl/, so the room here is 32 MiB =
@@ -157,3 +158,14 @@ def test_what_a_call_sends_beside_its_carry(tmp_path):
     assert travelling_bytes(repo) == 1000 + 300 + 13 + 50
     with pytest.raises(SystemExit, match="not a git checkout"):
         travelling_bytes(plain)
+
+
+def test_a_large_run_waits_for_what_the_carry_keeps_for_other_runs():
+    """10 MiB kept in carry/ for runs that do not go to the slot leave 33,554,432 - 10,485,760 = 23,068,672 bytes:
+    ViT+LSTM (28,705,912 with bf16 moments) and UNet+LSTM (2,955,822 x 8 + 196,608 = 23,843,184) would fit the
+    whole room, so they wait for those runs rather than train alone."""
+    cfg = preset("paper")
+    slot = next_slot(cfg, rows(cfg), ROOM - 10 * 2**20, kept_bytes=10 * 2**20)
+    assert slot.start == [] and slot.alone is None
+    for label in ("vit_lstm-state", "unet_lstm-state"):
+        assert "beside what carry/ keeps for other runs (10.0 MiB); finish those first" in slot.wait[label]

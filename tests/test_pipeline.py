@@ -6,7 +6,7 @@ import pytest
 import torch
 
 from vitfly.cli import main
-from vitfly.workflows.pipeline import load_pipeline_config, success_by_policy
+from vitfly.workflows.pipeline import TrainStage, load_pipeline_config, same_settings, success_by_policy, train_settings
 
 TINY = """
 out: {out}
@@ -115,3 +115,13 @@ def test_tiny_pipeline_end_to_end_and_resume(tmp_path, capsys):
     again = capsys.readouterr().out
     assert "(0 new)" in again and "[train] done before" in again
     assert again.count("0 trials flown, 3 done before") == 3
+
+
+def test_a_field_added_to_train_stage_keeps_finished_runs_done():
+    """A done.json recorded before TrainStage had ``select`` still matches the default; a run of other settings
+    does not."""
+    wanted = train_settings(TrainStage(model="convnet"), "d.h5")
+    recorded = {k: v for k, v in wanted.items() if k != "select"}
+    assert same_settings(recorded, wanted)
+    assert not same_settings(recorded, train_settings(TrainStage(model="convnet", select="last"), "d.h5"))
+    assert not same_settings({**recorded, "max_epochs": 7}, wanted) and not same_settings(None, wanted)

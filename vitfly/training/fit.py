@@ -17,6 +17,7 @@ from vitfly.training.metrics_csv import set_aside as set_metrics_aside
 MONITOR = "val/loss"
 BEST_NAME = "best"  # checkpoints/best.ckpt: the lowest validation loss so far
 CHECKPOINT_DIR = "checkpoints"
+SELECT = ("best", "last")  # which epoch a training hands on to be flown
 
 
 def checkpoint_defaults() -> dict[str, Any]:
@@ -65,8 +66,11 @@ def train_policy(
     progress_bar: bool = True,
     callbacks: list | None = None,
     init_weights: str | os.PathLike | None = None,
+    select: str = "best",
 ) -> Path:
-    """Train ``model`` on ``data_path``; returns the path of the best checkpoint (last if no validation).
+    """Train ``model`` on ``data_path``; returns the path of the checkpoint to fly: with ``select="best"`` the
+    epoch of lowest validation loss (last if no validation), with ``select="last"`` the final epoch (the
+    original ViTfly code flies the model its last epoch saved; no best.ckpt is kept then).
 
     Writes ``out_dir/checkpoints/{best,last}.ckpt``, ``out_dir/metrics.csv`` and ``out_dir/split.json``.
     An interrupted run resumes from ``out_dir/checkpoints/last.ckpt`` when called again with the same
@@ -89,6 +93,8 @@ def train_policy(
     from vitfly.training.checkpoints import LastCheckpoint, RngState
     from vitfly.zoo.policy import create_policy
 
+    if select not in SELECT:
+        raise VitflyError(f"select: expected one of {', '.join(SELECT)}, got {select!r}")
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     L.seed_everything(seed, verbose=False)
@@ -102,11 +108,12 @@ def train_policy(
         **(data_kwargs or {}),
     )
     ckpt_dir = out_dir / CHECKPOINT_DIR
-    checkpoint = ModelCheckpoint(dirpath=ckpt_dir, **checkpoint_defaults())
+    checkpoint = ModelCheckpoint(dirpath=ckpt_dir, **checkpoint_defaults()) if select == "best" else None
     # best first: Trainer.checkpoint_callback (ckpt_path="best") is the first ModelCheckpoint
     bar = [RichProgressBar()] if progress_bar else []
     # RngState: a resumed run draws the dropout masks the uninterrupted one would have drawn
-    callbacks = [checkpoint, LastCheckpoint(ckpt_dir), RngState(), *bar, *(callbacks or [])]
+    callbacks = [*([checkpoint] if checkpoint else []), LastCheckpoint(ckpt_dir), RngState(), *bar,
+                 *(callbacks or [])]
     trainer = L.Trainer(
         max_epochs=max_epochs,
         default_root_dir=out_dir,
@@ -127,7 +134,7 @@ def train_policy(
         trainer.fit(policy, datamodule=data, ckpt_path=str(last) if last.exists() else None, weights_only=True)
     finally:
         join_metrics(out_dir)
-    best = checkpoint.best_model_path
+    best = checkpoint.best_model_path if checkpoint else ""
     path = Path(best) if best else last
     if best and not path.exists() and last.exists():
         raise BestCheckpointMissing(path)

@@ -42,6 +42,7 @@ class TrainStage:
     policy_kwargs: dict = field(default_factory=dict)  # PolicyModule: lr, warmup_epochs, tbptt_steps, ...
     data_kwargs: dict = field(default_factory=dict)  # TrajectoryDataModule: cache_mb, num_workers, ...
     trainer_kwargs: dict = field(default_factory=dict)  # lightning.Trainer
+    select: str = "best"  # the epoch flown: best (lowest validation loss) or last (the original code's)
 
 
 @dataclass
@@ -162,7 +163,7 @@ def stage_train(t: TrainStage, data: str | Path, train_dir: Path, threads: int =
     check_trained_data(Path(train_dir), data)
     if marker.exists():
         done = json.loads(marker.read_text())
-        if done.get("train") == wanted and Path(done["checkpoint"]).exists():
+        if same_settings(done.get("train"), wanted) and Path(done["checkpoint"]).exists():
             print(f"[train] done before: {done['checkpoint']}")
             return Path(done["checkpoint"])
         # other settings (e.g. more epochs): train_policy goes on from last.ckpt
@@ -175,7 +176,7 @@ def stage_train(t: TrainStage, data: str | Path, train_dir: Path, threads: int =
                         batch_size=t.batch_size, val_fraction=t.val_fraction, seed=t.seed,
                         policy_kwargs=t.policy_kwargs, data_kwargs=t.data_kwargs,
                         trainer_kwargs={"enable_model_summary": False, **t.trainer_kwargs}, progress_bar=progress,
-                        callbacks=callbacks)
+                        callbacks=callbacks, select=t.select)
     write_text(marker, json.dumps({"checkpoint": str(ckpt), "train": wanted}) + "\n")
     print(f"[train] {t.model} (use_state={t.use_state}): {ckpt}")
     return ckpt
@@ -184,6 +185,15 @@ def stage_train(t: TrainStage, data: str | Path, train_dir: Path, threads: int =
 def train_settings(t: TrainStage, data: str | Path) -> dict:
     """What a finished run's ``done.json`` records as its settings (a run with other settings is resumed)."""
     return dataclasses.asdict(t) | {"data": str(data)}
+
+
+def same_settings(recorded: dict | None, wanted: dict) -> bool:
+    """A finished run's recorded settings are ``wanted``; a field added to TrainStage since it was recorded counts
+    as its default, so that a new field never retrains the runs finished before it."""
+    if recorded is None:
+        return False
+    defaults = dataclasses.asdict(TrainStage())
+    return {**{k: defaults[k] for k in wanted.keys() - recorded.keys() if k in defaults}, **recorded} == wanted
 
 
 @functools.lru_cache(maxsize=8)

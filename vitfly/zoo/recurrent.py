@@ -45,6 +45,11 @@ def run_lstm(lstm: nn.LSTM, x: torch.Tensor, hidden: Hidden | None) -> tuple[tor
     elif not is_tracing():
         check_hidden(lstm, hidden, b)
     if lstm.training or torch.is_grad_enabled() or is_tracing():
+        if x.device.type == "cpu" and torch.is_autocast_enabled("cpu") and not is_tracing():
+            # torch 2.15's oneDNN LSTM refuses bf16 on CPUs with AVX512-BF16 ("could not create a primitive
+            # descriptor"): the recurrence runs in fp32, the rest of the network stays under autocast
+            with torch.autocast("cpu", enabled=False):
+                return run_lstm(lstm, x.float(), (hidden[0].float(), hidden[1].float()))
         if x.device.type == "cpu" and torch.get_num_threads() > 1 and not is_tracing():
             return _lstm_one_thread(lstm, x, hidden)
         out, (h, c) = lstm(x, tuple(hidden))

@@ -1,0 +1,206 @@
+"""A preset's runs kept in the repository, ``carry/<preset>/<label>/``: ``scripts/gpu.py carry`` writes them here,
+``restore`` puts them back into the preset's ``train/``, and ``train --resume-from carry/<preset>`` resumes them
+on the GPU machine.
+
+Nothing a session leaves outside git outlives it: the next session starts from a new checkout, without runs/
+or data/ (both ignored), and on 2026-11-28 a ViT+LSTM state from an H100 slot and a LSTMnet run 65 epochs into a
+CPU training were lost so. A run therefore goes on only from what was committed, and the carry is what gets
+committed: every run of the preset that has trained here, as plain files (no pickle;
+``vitfly.training.checkpoint_files``), small enough for the device tool, which sends the working tree, carry/
+included, within 64 MiB a call:
+
+- an unfinished run (stopped by a GPU slot, or started here by ``vitfly reproduce``): ``last.*``, its last
+  epoch's resume state, lean (fp32 weights, Adam's moments in fp32 where they fit and in bf16 where they do not:
+  an inexact resume), ``best.*`` where the preset flies the best epoch (network weights in fp16),
+  ``unfinished.json`` (epochs, data hash, slots) and the run's metrics, split, cost, hparams and data record;
+- a finished run: ``best.*``, the checkpoint it flies (network weights in fp16, as the shipped weights and as
+  a run returned by a slot), ``done.json`` and the same run files.
+
+The data never travels: every machine collects it again (deterministic, ``physics: native``), and each run's
+data hash is checked against it before anything resumes or is taken as done.
+"""
+
+from __future__ import annotations
+
+import json
+import shutil
+from pathlib import Path
+
+from scripts.gpu_slots import MARKER, compact_moments, copy_run, epochs_done, mib, relocate, tree_bytes
+
+ROOT = Path(__file__).resolve().parent.parent
+CARRY_DIR = "carry"  # carry/<preset>/<label>/: tracked, so it lands with a commit and travels with every call
+LAST, BEST = "last", "best"  # the checkpoints' names in a carried folder (NAME.safetensors + NAME.json)
+RUN_FILES = ("metrics.csv", "split.json", "cost.json", "hparams.yaml", "data.json")
+
+
+def lean_last(run: Path, moments: str) -> dict:
+    """A run's last.ckpt with Adam's moments in ``moments`` (fp32: as they are)."""
+    import torch
+
+    return compact_moments(torch.load(run / "checkpoints" / "last.ckpt", map_location="cpu", weights_only=True),
+                           moments)
+
+
+def flown_checkpoint(cfg, r) -> Path | None:
+    """The checkpoint a finished run flies (done.json's), or an unfinished run's best so far where the preset
+    flies the best epoch (None: nothing to keep)."""
+    from vitfly.workflows.reproduce_config import train_stage
+
+    done = r.folder / "done.json"
+    if done.exists():
+        path = Path(json.loads(done.read_text())["checkpoint"])
+        return path if path.is_absolute() else r.folder / path
+    best = r.folder / "checkpoints" / "best.ckpt"
+    flies_best = train_stage(cfg, r.run.model, r.run.use_state, seed=r.run.seed).select == "best"
+    return best if flies_best and best.exists() else None
+
+
+def cpu_marker(cfg, r) -> dict:
+    """The resume marker of a run started here (``vitfly reproduce``), which has none yet."""
+    from scripts.gpu_plan import max_epochs
+    from vitfly.workflows.reproduce import _fit_seconds
+
+    run = r.folder
+    record = json.loads((run / "data.json").read_text()) if (run / "data.json").exists() else {}
+    n = epochs_done(run)
+    return {"label": r.label, "preset": cfg.preset, "dataset_hash": record.get("dataset_hash"), "epochs": n,
+            "max_epochs": max_epochs(cfg, r.run),
+            "slots": [{"device": "cpu", "epochs": [0, n], "wall_s": round(_fit_seconds(run), 1)}]}
+
+
+def park(cfg, r, dst: Path, moments: str) -> int:
+    """Run ``r`` (``scripts.gpu_plan.RunState``) as its carried folder ``dst``; returns its bytes."""
+    from scripts.gpu_reproduce import slim
+    from vitfly.training import checkpoint_files
+    from vitfly.training.metrics_csv import EARLIER_METRICS, merge_metrics
+
+    run = r.folder
+    dst.mkdir(parents=True)
+    flown = flown_checkpoint(cfg, r)
+    if flown is not None:
+        checkpoint_files.write(slim(flown), dst, BEST)
+    if r.state == "done":
+        done = json.loads((run / "done.json").read_text())
+        (dst / "done.json").write_text(json.dumps({**done, "checkpoint": BEST}) + "\n")
+    else:
+        marker = r.marker if r.state == "unfinished" else cpu_marker(cfg, r)
+        checkpoint_files.write(lean_last(run, moments), dst, LAST)
+        (dst / MARKER).write_text(json.dumps({**marker, "carried_moments": moments}) + "\n")
+    merge_metrics([run / EARLIER_METRICS, run / "metrics.csv"], dst / "metrics.csv", None)
+    for name in RUN_FILES[1:]:
+        if (run / name).exists():
+            shutil.copy(run / name, dst / name)
+    return tree_bytes(dst)
+
+
+def parked_size(cfg, r, moments: str) -> int:
+    """What ``park`` will write for ``r``, estimated from its network's parameter count; ``moments="done"``: what it
+    will write once the run is finished (the flown weights in fp16)."""
+    from scripts.gpu_plan import FOLDER_BYTES, parameters, state_bytes
+
+    if r.state == "done" or moments == "done":
+        return 2 * parameters(cfg, r.run) + FOLDER_BYTES
+    fp16 = 2 * parameters(cfg, r.run) if flown_checkpoint(cfg, r) else 0
+    return fp16 + state_bytes(cfg, r.run, moments) - (2 * parameters(cfg, r.run) if fp16 else 0)
+
+
+def empty_carry(carry_dir: Path) -> None:
+    """Remove an earlier carry; refused (one line) for a folder that holds anything but carried run folders."""
+    if not carry_dir.exists():
+        return
+    strangers = [p.name for p in carry_dir.iterdir()
+                 if not ((p / MARKER).exists() or (p / "done.json").exists())]
+    if strangers:
+        raise SystemExit(f"{carry_dir}: holds {', '.join(sorted(strangers)[:3])}, not carried runs; "
+                         "not emptied (name another --carry-dir)")
+    shutil.rmtree(carry_dir)
+
+
+def write_carry(cfg, rows: list, slot, carry_dir: Path, room: int) -> None:
+    """Every run of ``rows`` that trained here into ``carry_dir`` (emptied first: a stale state would resume an
+    older one): the slot's carried runs with the moments its plan chose, the other unfinished ones with bf16
+    moments where fp32 ones would not fit ``room``; says (one line) when the carry leaves a call too little."""
+    empty_carry(carry_dir)
+    kept = [r for r in rows if r.folder is not None]
+    written = 0
+    for r in kept:
+        moments = slot.moments.get(r.label) or ("fp32" if written + parked_size(cfg, r, "fp32") <= room else "bf16")
+        written += park(cfg, r, carry_dir / r.label, moments)
+        what = "done, the flown weights" if r.state == "done" else f"unfinished, {moments} moments"
+        print(f"  kept: {r.label} ({what}): {mib(tree_bytes(carry_dir / r.label))}")
+    if not kept:
+        print(f"  nothing has trained here: {carry_dir}/ is empty")
+        return
+    print(f"  wrote {carry_dir}/ ({mib(written)}); commit it: the next session and the next slot go on from it")
+    if written > room:
+        print(f"  the carry ({mib(written)}) is over the {mib(room)} a device call leaves it: a call would be "
+              "refused; fly or drop finished runs, or finish an unfinished one here, first")
+
+
+def materialize(folder: Path) -> None:
+    """A carried folder made a run folder in place: ``last.*`` and ``best.*`` as ``checkpoints/*.ckpt`` (the
+    callbacks pointed there), what Lightning and ``vitfly reproduce`` read."""
+    import torch
+
+    from vitfly.training import checkpoint_files
+
+    ckpt_dir = folder / "checkpoints"
+    ckpt_dir.mkdir(exist_ok=True)
+    for name in (LAST, BEST):
+        if checkpoint_files.exists(folder, name):
+            obj = checkpoint_files.read(folder, name)
+            torch.save(relocate(obj, ckpt_dir) if name == LAST else obj, ckpt_dir / f"{name}.ckpt")
+            for path in checkpoint_files.paths(folder, name):
+                path.unlink()
+    done = folder / "done.json"
+    if done.exists():
+        record = json.loads(done.read_text())
+        record["checkpoint"] = str((ckpt_dir / f"{BEST}.ckpt").resolve())
+        done.write_text(json.dumps(record) + "\n")
+
+
+def is_carried(folder: Path) -> bool:
+    from vitfly.training import checkpoint_files
+
+    return checkpoint_files.exists(folder, LAST) or checkpoint_files.exists(folder, BEST)
+
+
+def carried_hash(folder: Path) -> str | None:
+    """The dataset hash a carried run was trained on: its data record, else its marker's or done.json's."""
+    from scripts.gpu_reproduce import returned_hash
+
+    record = folder / "data.json"
+    return json.loads(record.read_text()).get("dataset_hash") if record.exists() else returned_hash(folder)
+
+
+def restore(args) -> int:
+    """``carry/<preset>/`` back into the preset's ``train/``: each run that is not done here and not further along
+    here; its data hash checked against the local dataset first (one line naming both, nothing restored)."""
+    from scripts.gpu_reproduce import load_cfg, local_data_hash, run_dir
+
+    cfg = load_cfg(args)
+    src = ROOT / args.carry_dir / cfg.preset  # an absolute --carry-dir stays itself
+    if not src.is_dir():
+        print(f"{src}: no carried runs")
+        return 0
+    local = local_data_hash(cfg)
+    folders = sorted(p for p in src.iterdir() if p.is_dir())
+    for folder in folders:
+        if carried_hash(folder) != local:
+            raise SystemExit(f"{folder}: trained on dataset_hash {carried_hash(folder)}; the local {cfg.data} has "
+                             f"{local}; nothing restored (collect the preset's data as it was: physics, count)")
+    for folder in folders:
+        dst = run_dir(cfg, folder.name)
+        carried = json.loads((folder / MARKER).read_text())["epochs"] if (folder / MARKER).exists() else None
+        if (dst / "done.json").exists():
+            print(f"{dst}: done here; left alone")
+        elif carried is not None and epochs_done(dst) >= carried:
+            print(f"{dst}: {epochs_done(dst)} epochs here, {carried} carried; left alone")
+        else:
+            copy_run(folder, dst)
+            materialize(dst)
+            print(f"{dst}: " + ("done" if carried is None else f"unfinished, {carried} epochs; vitfly reproduce "
+                                "or the next slot goes on from it"))
+    return 0
+
