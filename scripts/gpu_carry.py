@@ -71,7 +71,7 @@ def cpu_marker(cfg, r) -> dict:
 
 def park(cfg, r, dst: Path, moments: str) -> int:
     """Run ``r`` (``scripts.gpu_plan.RunState``) as its carried folder ``dst``; returns its bytes."""
-    from scripts.gpu_reproduce import slim
+    from scripts.gpu_slots import slim
     from vitfly.training import checkpoint_files
     from vitfly.training.metrics_csv import EARLIER_METRICS, merge_metrics
 
@@ -168,7 +168,7 @@ def is_carried(folder: Path) -> bool:
 
 def carried_hash(folder: Path) -> str | None:
     """The dataset hash a carried run was trained on: its data record, else its marker's or done.json's."""
-    from scripts.gpu_reproduce import returned_hash
+    from scripts.gpu_slots import returned_hash
 
     record = folder / "data.json"
     return json.loads(record.read_text()).get("dataset_hash") if record.exists() else returned_hash(folder)
@@ -177,7 +177,7 @@ def carried_hash(folder: Path) -> str | None:
 def restore(args) -> int:
     """``carry/<preset>/`` back into the preset's ``train/``: each run that is not done here and not further along
     here; its data hash checked against the local dataset first (one line naming both, nothing restored)."""
-    from scripts.gpu_reproduce import load_cfg, local_data_hash, run_dir
+    from scripts.gpu_preset import load_cfg, local_data_hash, run_dir
 
     cfg = load_cfg(args)
     src = ROOT / args.carry_dir / cfg.preset  # an absolute --carry-dir stays itself

@@ -60,7 +60,8 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
-DROPPED_KEYS = ("optimizer_states", "lr_schedulers", "callbacks", "loops")  # resume state, not the network
+from scripts.gpu_preset import load_cfg, local_data_hash, parse_label, run_dir  # noqa: E402
+
 RUN_FILES = ("metrics.csv", "split.json", "cost.json", "hparams.yaml", "data.json")  # what travels besides checkpoints
 SLOT_ENDED_RC = 3  # train-one's exit status when the slot ended before the run did
 SLOT_EPOCHS = "slot_epochs.json"  # train-one's measured epoch lengths (s) this slot; not carried home
@@ -69,27 +70,6 @@ REPORT = "gpu_reproduce.json"  # what happened to each run, and the manifest of 
 
 def log(msg: str) -> None:
     print(f"[gpu-reproduce {time.strftime('%H:%M:%S')}] {msg}", flush=True)
-
-
-def load_cfg(args: argparse.Namespace):
-    from vitfly.workflows.reproduce_config import load_reproduce_config
-
-    return load_reproduce_config(args.config, args.preset, {"out": args.run_dir, "data": args.data})
-
-
-def parse_label(label: str):
-    """A run's folder name (MODEL-state, MODEL-nostate, with -s<seed> for another training draw) as a Run."""
-    from vitfly.errors import VitflyError
-    from vitfly.workflows.reproduce_config import Run
-
-    try:
-        return Run.parse(label)
-    except VitflyError as err:
-        raise SystemExit(f"--runs: {err}") from None
-
-
-def run_dir(cfg, label: str) -> Path:
-    return cfg.train_dir(*parse_label(label))
 
 
 def device_name() -> str:
@@ -139,25 +119,11 @@ def train_one(args: argparse.Namespace) -> int:
 # -- there: packing for the trip back ---------------------------------------------------------------------------
 
 
-def slim(src: Path) -> dict:
-    """Checkpoint ``src`` without optimiser/loop state, its state dict only the network's weights, floating ones
-    in fp16."""
-    import torch
-
-    from vitfly.zoo.checkpoint import NET_PREFIX, network_from_checkpoint_dict
-    from vitfly.zoo.pretrained import fp16_state_dict
-
-    obj = torch.load(src, map_location="cpu", weights_only=True)
-    for key in DROPPED_KEYS:
-        obj.pop(key, None)
-    net = network_from_checkpoint_dict(obj, str(src))
-    obj["state_dict"] = {NET_PREFIX + k: v for k, v in fp16_state_dict(net, str(src)).items()}
-    return obj
-
-
 def slim_checkpoint(src: Path, dst: Path) -> dict:
     """``slim(src)`` saved as ``dst``; returns its epoch and step."""
     import torch
+
+    from scripts.gpu_slots import slim
 
     obj = slim(src)
     torch.save(obj, dst)
@@ -458,25 +424,6 @@ def train(args: argparse.Namespace) -> int:
 # -- here: unpacking and planning -------------------------------------------------------------------------------
 
 
-def local_data_hash(cfg) -> str:
-    from vitfly.datamodules.provenance import dataset_fingerprint
-
-    if not Path(cfg.data).exists():
-        raise SystemExit(f"{cfg.data}: no dataset here to check the returned runs against; collect it first "
-                         f"(vitfly reproduce --preset {cfg.preset} --stages data)")
-    return dataset_fingerprint(cfg.data)["dataset_hash"]
-
-
-def returned_hash(run: Path) -> str | None:
-    from scripts.gpu_slots import MARKER
-
-    if (run / "done.json").exists():
-        return (json.loads((run / "done.json").read_text()).get("trained_on") or {}).get("dataset_hash")
-    if (run / MARKER).exists():
-        return json.loads((run / MARKER).read_text()).get("dataset_hash")
-    raise SystemExit(f"{run}: neither done.json nor {MARKER}; not a run packed by scripts/gpu.py train")
-
-
 def extract_returned(src: Path, tmp: Path) -> None:
     """The returned runs, joined from their pieces, checked against the report's manifest and unpacked (safely)
     into the scratch folder ``tmp``."""
@@ -542,6 +489,8 @@ def progress(marker: dict) -> str:
 
 def checked_runs(tmp: Path, src: Path, cfg, local: str) -> list[Path]:
     """The returned run folders, every one checked (label, data hash against ``local``) before any is placed."""
+    from scripts.gpu_slots import returned_hash
+
     runs = sorted(p for p in tmp.iterdir() if p.is_dir())
     for run in runs:
         parse_label(run.name)

@@ -28,6 +28,7 @@ from vitfly.training.metrics_csv import set_aside
 MARKER = "unfinished.json"
 CARRY_BYTES = 64 * 2**20  # what the device tool carries to the machine, all paths together
 MOMENTS = ("exp_avg", "exp_avg_sq", "max_exp_avg_sq")  # Adam's per-parameter state besides `step`
+DROPPED_KEYS = ("optimizer_states", "lr_schedulers", "callbacks", "loops")  # resume state, not the network
 
 
 class SlotEnded(Exception):
@@ -181,3 +182,27 @@ def copy_run(src: Path, dst: Path) -> None:
         shutil.rmtree(dst)
     dst.parent.mkdir(parents=True, exist_ok=True)
     shutil.copytree(src, dst)
+
+
+def slim(src: Path) -> dict:
+    """Checkpoint ``src`` without optimiser/loop state, its state dict only the network's weights, floating ones
+    in fp16."""
+    import torch
+
+    from vitfly.zoo.checkpoint import NET_PREFIX, network_from_checkpoint_dict
+    from vitfly.zoo.pretrained import fp16_state_dict
+
+    obj = torch.load(src, map_location="cpu", weights_only=True)
+    for key in DROPPED_KEYS:
+        obj.pop(key, None)
+    net = network_from_checkpoint_dict(obj, str(src))
+    obj["state_dict"] = {NET_PREFIX + k: v for k, v in fp16_state_dict(net, str(src)).items()}
+    return obj
+
+
+def returned_hash(run: Path) -> str | None:
+    if (run / "done.json").exists():
+        return (json.loads((run / "done.json").read_text()).get("trained_on") or {}).get("dataset_hash")
+    if (run / MARKER).exists():
+        return json.loads((run / MARKER).read_text()).get("dataset_hash")
+    raise SystemExit(f"{run}: neither done.json nor {MARKER}; not a run packed by scripts/gpu.py train")

@@ -9,7 +9,7 @@ import torch
 
 from vitfly.deploy.onnx import OnnxPolicyRunner, export_onnx_bytes
 from vitfly.deploy.optimize import inference_copy
-from vitfly.deploy.quantize import _gemms_as_matmuls, quantize_int8
+from vitfly.deploy.quantize import _gemms_as_matmuls, int8_saturates, quantize_int8
 from vitfly.eval.agreement import (
     COMMAND_TOLERANCE_MPS,
     compare_commands,
@@ -126,8 +126,12 @@ def test_fast_paths_fly_the_eager_commands(flights, name, int8_products):
     reference = replay_commands(LearnedPolicy(net), flights)
     for backend, precision in (("onnxruntime", "fp32"), ("onnxruntime-int8", "int8")):
         runner = OnnxPolicyRunner(net, precision=precision)
-        if precision == "int8":  # the ConvNet's stay float32 (FLOAT32_LARGEST), the ViT+LSTM's are int8
-            assert int(runner.session.get_modelmeta().custom_metadata_map["vitfly.int8_products"]) == int8_products
+        if precision == "int8":  # the ConvNet's stay float32 (FLOAT32_LARGEST), the ViT+LSTM's are int8, but for
+            # its largest on a CPU without VNNI (FLOAT32_LARGEST_WITHOUT_VNNI)
+            meta = runner.session.get_modelmeta().custom_metadata_map
+            saturates = int8_saturates()
+            assert meta["vitfly.int8_reduce_range"] == str(saturates)
+            assert int(meta["vitfly.int8_products"]) == int8_products - (saturates and name == "vit_lstm")
         fast = LearnedPolicy(net, step_fn=runner)
         agreement = compare_commands(reference, replay_commands(fast, flights))
         assert agreement.ticks == 150
@@ -144,3 +148,21 @@ def test_int8_latency_backend_checks_then_times(tmp_path, capsys):
     assert main(["export", "convnet", "--out", str(out), "--batch-size", "1", "--precision", "int8"]) == 0
     assert "int8" in capsys.readouterr().out
     assert OnnxPolicyRunner(out).precision == "int8"
+
+
+def test_int8_weights_take_7_bits_where_the_cpu_products_saturate(monkeypatch, tmp_path):
+    """An x86 CPU whose flags name no VNNI unit sums uint8 x int8 pairs in 16 bits (ONNX Runtime's AVX2 kernels):
+    255 x 127 x 2 = 64,770 overflows 32,767, 255 x 63 x 2 = 32,130 does not, so the weights take 7 bits there."""
+    from vitfly.deploy import quantize
+
+    cpuinfo = tmp_path / "cpuinfo"
+    real_path = quantize.Path
+    monkeypatch.setattr(quantize, "Path", lambda p: real_path(cpuinfo) if p == "/proc/cpuinfo" else real_path(p))
+    monkeypatch.setattr("platform.machine", lambda: "x86_64")
+    cpuinfo.write_text("processor\t: 0\nflags\t\t: fpu sse2 avx2 fma\n")
+    assert quantize.int8_saturates()
+    cpuinfo.write_text("processor\t: 0\nflags\t\t: fpu sse2 avx2 avx512f avx512_vnni\n")
+    assert not quantize.int8_saturates()
+    monkeypatch.setattr("platform.machine", lambda: "aarch64")
+    cpuinfo.write_text("processor\t: 0\nflags\t\t: fpu sse2 avx2\n")
+    assert not quantize.int8_saturates()  # Arm's int8 dot products do not saturate this way

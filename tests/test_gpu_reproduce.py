@@ -112,6 +112,15 @@ def test_runs_trained_elsewhere_come_back_as_done(tmp_path, data, capsys):
     assert gpu.main(["unpack", *where, str(out)]) == 0 and "left alone" in capsys.readouterr().out
 
 
+def other_data(data: Path, tmp_path: Path) -> Path:
+    """``data`` with one attribute more: the same flights, another dataset hash."""
+    other = tmp_path / "other.h5"
+    shutil.copy(data, other)
+    with h5py.File(other, "r+") as f:
+        f.attrs["note"] = "another dataset"
+    return other
+
+
 def trained_state(path: Path) -> tuple[dict, dict]:
     """(weights, Adam state) of a Lightning checkpoint."""
     saved = torch.load(path, map_location="cpu", weights_only=True)
@@ -215,10 +224,7 @@ def test_a_run_stopped_in_one_slot_resumes_in_the_next_exactly(tmp_path, data, t
     assert "vit_lstm-state   done (2 epochs on cpu)" in capsys.readouterr().out
 
     # returned runs of other data are refused as a whole
-    other = tmp_path / "other.h5"
-    shutil.copy(data, other)
-    with h5py.File(other, "r+") as f:
-        f.attrs["note"] = "another dataset"
+    other = other_data(data, tmp_path)
     with pytest.raises(SystemExit, match="trained on dataset_hash .* the local .*other.h5 has .* nothing unpacked"):
         gpu.main(["unpack", "--config", str(two_epochs), "--preset", "tiny", "--data", str(other),
                   "--run-dir", str(tmp_path / "elsewhere"), str(tmp_path / "back1")])
@@ -341,10 +347,7 @@ def test_runs_outlive_the_session_in_the_carry(tmp_path, data, two_epochs, capsy
     assert gpu.main(["restore", *common, "--run-dir", str(third), "--carry-dir", str(carry)]) == 0
     assert "done here; left alone" in capsys.readouterr().out
 
-    other = tmp_path / "other.h5"
-    shutil.copy(data, other)
-    with h5py.File(other, "r+") as f:
-        f.attrs["note"] = "another dataset"
+    other = other_data(data, tmp_path)
     with pytest.raises(SystemExit, match="trained on dataset_hash .* the local .*other.h5 has .* nothing restored"):
         gpu.main(["restore", "--config", str(two_epochs), "--preset", "tiny", "--data", str(other), "--run-dir",
                   str(tmp_path / "fourth"), "--carry-dir", str(carry)])

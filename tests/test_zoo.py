@@ -11,7 +11,7 @@ from torch import nn
 from vitfly.errors import VitflyError
 from vitfly.zoo import create_model, list_models, load_network, register_model, save_checkpoint
 from vitfly.zoo.layers import SNLinear, min_pool2d, state_vector
-from vitfly.zoo.recurrent import lstm_inference
+from vitfly.zoo.recurrent import lstm_inference, run_lstm
 
 torch.set_num_threads(1)
 
@@ -178,6 +178,21 @@ def test_lstm_inference_matches_nn_lstm(bias):
     torch.testing.assert_close(out, ref_out, atol=1e-6, rtol=0)
     torch.testing.assert_close(h, ref_h, atol=1e-6, rtol=0)
     torch.testing.assert_close(c, ref_c, atol=1e-6, rtol=0)
+
+
+def test_an_lstm_trains_under_cpu_bf16_autocast():
+    """torch 2.15's oneDNN LSTM refuses bf16 on CPUs without AVX512-BF16 ("could not create a primitive
+    descriptor"; an AVX2-only AMD EPYC): under CPU autocast the recurrence runs in fp32, so it trains, and gives
+    exactly the fp32 result."""
+    torch.manual_seed(4)
+    lstm = nn.LSTM(10, 8, num_layers=2, batch_first=True).train()
+    x = torch.randn(2, 16, 10, requires_grad=True)
+    ref, _ = run_lstm(lstm, x, None)
+    with torch.autocast("cpu", dtype=torch.bfloat16):
+        out, (h, c) = run_lstm(lstm, x, None)
+    assert out.dtype == h.dtype == torch.float32 and torch.equal(out, ref)
+    out.sum().backward()
+    assert x.grad is not None and lstm.weight_ih_l0.grad.abs().sum() > 0
 
 
 @pytest.mark.parametrize("name", sorted(RECURRENT) + ["vit"])

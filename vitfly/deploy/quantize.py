@@ -11,6 +11,11 @@ no calibration data, so it cannot be mis-calibrated for a scene. ``FLOAT32_LARGE
 whose largest products in int8 moved the commands beyond the tolerance over recorded flights; they stay float32.
 The state inputs (speed, attitude) enter the products apart from the image features (``inference_copy``):
 their trained weights are several times the image's and would set the int8 scales of whole rows.
+On an x86 CPU without int8 dot-product instructions (VNNI; e.g. an AVX2-only AMD EPYC), ONNX Runtime multiplies
+uint8 inputs by int8 weights in pairs summed in 16 bits, which saturate: there the weights are quantised to 7
+bits (``reduce_range``; measured with the shipped LSTMnet, one 660 -> 1580 product moved the outputs by 0.87
+with 8-bit weights, 0.10 with 7-bit ones), and ``FLOAT32_LARGEST_WITHOUT_VNNI`` adds the products that 7 bits
+leave beyond the tolerance. The export records which (``vitfly.int8_reduce_range``).
 
 Tried and dropped (measured with per-call CPU time, one thread): static (calibrated) int8, QDQ and
 QOperator -- the ViT's grouped 3x3 convolutions and the LSTMs' products became slower than float32 (the LSTM
@@ -47,6 +52,7 @@ import onnx
 from onnx import helper, numpy_helper
 
 PRECISIONS = ("fp32", "int8")
+VNNI_FLAGS = ("avx512_vnni", "avx_vnni", "amx_int8")  # /proc/cpuinfo flags of x86 int8 dot-product units
 # architectures whose largest products stay float32 in the int8 path: (how many, from the largest down; why).
 # Measured with the shipped trained weights (weights/) over recorded flights, benchmarks/fast_path_agreement.py
 FLOAT32_LARGEST: dict[str, tuple[int, str]] = {
@@ -57,6 +63,32 @@ FLOAT32_LARGEST: dict[str, tuple[int, str]] = {
                 "turns either product's int8 rounding (raw error about 1e-3) into up to 0.38 m/s; its float32 "
                 "export is already within a quarter of the original's latency"),
 }
+# with 7-bit weights (an x86 CPU without VNNI), measured as FLOAT32_LARGEST with the shipped weights
+FLOAT32_LARGEST_WITHOUT_VNNI: dict[str, tuple[int, str]] = {
+    "lstmnet": (1, "on an AVX2-only CPU its largest product (image features into the first LSTM layer, 660 -> "
+                "1580) with 7-bit weights moved the outputs by 0.10 over the export's four-tick check; in "
+                "float32, the rest in int8: 0.016, against a tolerance of 0.05"),
+    "vit_lstm": (1, "on an AVX2-only CPU its largest product (the decoder folded into the LSTM's first input "
+                 "product, 4608 -> 512) with 7-bit weights moved the commands by up to 0.16 m/s over recorded "
+                 "flights (random weights), above the 0.15 m/s tolerance"),
+}
+
+
+def int8_saturates() -> bool:
+    """Whether this CPU multiplies ONNX Runtime's uint8 x int8 products through saturating 16-bit sums: an x86
+    CPU whose flags name no VNNI unit (other architectures, and CPUs whose flags cannot be read, are taken as
+    not saturating)."""
+    import platform
+
+    if platform.machine().lower() not in ("x86_64", "amd64", "i686", "x86"):
+        return False
+    try:
+        flags = Path("/proc/cpuinfo").read_text()
+    except OSError:
+        return False
+    return "flags" in flags and not any(f" {flag}" in flags for flag in VNNI_FLAGS)
+
+
 # smaller products gain nothing from int8 at batch 1: the per-call input quantisation costs more than it saves
 MIN_WEIGHT_ELEMENTS = 16_384
 PER_CHANNEL = True
@@ -103,11 +135,13 @@ def quantize_int8(
     model_bytes: bytes,
     min_weight_elements: int = MIN_WEIGHT_ELEMENTS,
     calibration_depth: np.ndarray | None = None,
+    reduce_range: bool | None = None,
 ) -> bytes:
     """The int8 version of an exported vitfly policy (its large products, less the largest for ``FLOAT32_LARGEST``);
     metadata kept, plus ``vitfly.precision = int8``, ``vitfly.int8_products`` (how many were quantised) and
     ``vitfly.int8_convolutions``. The fused mix-FFN convolutions (``FusedConvMixFFN``), when the export has
-    them, need ``calibration_depth`` (N, 60, 90) frames in [0, 1] to fix their activation ranges."""
+    them, need ``calibration_depth`` (N, 60, 90) frames in [0, 1] to fix their activation ranges.
+    ``reduce_range``: 7-bit weights (None: where this CPU's int8 products saturate, ``int8_saturates``)."""
     from onnxruntime.quantization import QuantType, quantize_dynamic
 
     model = onnx.load_from_string(model_bytes)
@@ -121,13 +155,16 @@ def quantize_int8(
     nodes = []
     _gemms_as_matmuls(model, min_weight_elements)
     nodes = _large_products(model, min_weight_elements)
-    keep_float32, _ = FLOAT32_LARGEST.get(metadata.get("vitfly.model", ""), (0, ""))
+    reduce_range = int8_saturates() if reduce_range is None else reduce_range
+    keep = {**FLOAT32_LARGEST, **(FLOAT32_LARGEST_WITHOUT_VNNI if reduce_range else {})}
+    keep_float32, _ = keep.get(metadata.get("vitfly.model", ""), (0, ""))
     nodes = nodes[: max(0, len(nodes) - keep_float32)]
     with tempfile.TemporaryDirectory(prefix="vitfly-int8-") as tmp:
         out = Path(tmp) / "int8.onnx"
         if nodes:
             quantize_dynamic(model, out, op_types_to_quantize=["MatMul", "Gemm"], nodes_to_quantize=nodes,
-                             weight_type=QuantType.QInt8, per_channel=PER_CHANNEL, reduce_range=False)  # fmt: skip
+                             weight_type=QuantType.QInt8, per_channel=PER_CHANNEL,
+                             reduce_range=reduce_range)
             model = onnx.load(out)
     if chains:
         _quantize_fused_convs(model, ranges)
@@ -136,6 +173,7 @@ def quantize_int8(
     metadata["vitfly.precision"] = "int8"
     metadata["vitfly.int8_products"] = str(len(nodes))
     metadata["vitfly.int8_convolutions"] = str(sum(1 if c.quick is None else 2 for c in chains))
+    metadata["vitfly.int8_reduce_range"] = str(bool(reduce_range))
     del model.metadata_props[:]
     for key, value in metadata.items():
         entry = model.metadata_props.add()

@@ -46,8 +46,8 @@ def run_lstm(lstm: nn.LSTM, x: torch.Tensor, hidden: Hidden | None) -> tuple[tor
         check_hidden(lstm, hidden, b)
     if lstm.training or torch.is_grad_enabled() or is_tracing():
         if x.device.type == "cpu" and torch.is_autocast_enabled("cpu") and not is_tracing():
-            # torch 2.15's oneDNN LSTM refuses bf16 on CPUs with AVX512-BF16 ("could not create a primitive
-            # descriptor"): the recurrence runs in fp32, the rest of the network stays under autocast
+            # torch 2.15's oneDNN LSTM refuses bf16 on CPUs without AVX512-BF16 ("could not create a primitive
+            # descriptor"; seen on an AVX2-only AMD EPYC): the recurrence runs in fp32, the rest stays under autocast
             with torch.autocast("cpu", enabled=False):
                 return run_lstm(lstm, x.float(), (hidden[0].float(), hidden[1].float()))
         if x.device.type == "cpu" and torch.get_num_threads() > 1 and not is_tracing():
