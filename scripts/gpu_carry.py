@@ -97,42 +97,64 @@ def park(cfg, r, dst: Path, moments: str) -> int:
 def parked_size(cfg, r, moments: str) -> int:
     """What ``park`` will write for ``r``, estimated from its network's parameter count; ``moments="done"``: what it
     will write once the run is finished (the flown weights in fp16)."""
-    from scripts.gpu_plan import FOLDER_BYTES, parameters, state_bytes
+    from scripts.gpu_plan import FOLDER_BYTES, STATE_BYTES_PER_PARAM, parameters
 
+    params = parameters(cfg, r.run)
     if r.state == "done" or moments == "done":
-        return 2 * parameters(cfg, r.run) + FOLDER_BYTES
-    fp16 = 2 * parameters(cfg, r.run) if flown_checkpoint(cfg, r) else 0
-    return fp16 + state_bytes(cfg, r.run, moments) - (2 * parameters(cfg, r.run) if fp16 else 0)
+        return 2 * params + FOLDER_BYTES
+    return params * (STATE_BYTES_PER_PARAM[moments] + 2 * (flown_checkpoint(cfg, r) is not None)) + FOLDER_BYTES
 
 
-def empty_carry(carry_dir: Path) -> None:
-    """Remove an earlier carry; refused (one line) for a folder that holds anything but carried run folders."""
+def carried_epochs(folder: Path) -> float:
+    """How far a carried run is: its epochs, infinite when done (nothing here replaces a finished run)."""
+    if (folder / "done.json").exists():
+        return float("inf")
+    return json.loads((folder / MARKER).read_text())["epochs"]
+
+
+def check_carry(carry_dir: Path) -> dict[str, Path]:
+    """label -> folder of what ``carry_dir`` holds; refused (one line) for anything but carried run folders."""
     if not carry_dir.exists():
-        return
+        return {}
+    for unfinished in carry_dir.glob(".*.writing"):  # a carry interrupted while writing this folder
+        shutil.rmtree(unfinished)
     strangers = [p.name for p in carry_dir.iterdir()
                  if not ((p / MARKER).exists() or (p / "done.json").exists())]
     if strangers:
         raise SystemExit(f"{carry_dir}: holds {', '.join(sorted(strangers)[:3])}, not carried runs; "
-                         "not emptied (name another --carry-dir)")
-    shutil.rmtree(carry_dir)
+                         "nothing written (name another --carry-dir)")
+    return {p.name: p for p in carry_dir.iterdir()}
 
 
 def write_carry(cfg, rows: list, slot, carry_dir: Path, room: int) -> None:
-    """Every run of ``rows`` that trained here into ``carry_dir`` (emptied first: a stale state would resume an
-    older one): the slot's carried runs with the moments its plan chose, the other unfinished ones with bf16
-    moments where fp32 ones would not fit ``room``; says (one line) when the carry leaves a call too little."""
-    empty_carry(carry_dir)
-    kept = [r for r in rows if r.folder is not None]
+    """Every run of ``rows`` that trained here into ``carry_dir``: the slot's carried runs with the moments its
+    plan chose, the other unfinished ones with bf16 moments where fp32 ones would not fit ``room``. A carried run
+    that is not here (a new checkout not restored) or further along than here stays as it is; each folder is
+    written beside its old one and then replaces it. Says (one line) when the carry leaves a call too little."""
+    carried = check_carry(carry_dir)
     written = 0
-    for r in kept:
+    for r in rows:
+        old = carried.get(r.label)
+        here = float("inf") if r.state == "done" else epochs_done(r.folder) if r.folder else 0
+        if old is not None and (r.folder is None or carried_epochs(old) > here):
+            written += tree_bytes(old)
+            print(f"  kept as it was: {r.label} (further along in {carry_dir.name}/ than here; restore it to go on)")
+            continue
+        if r.folder is None:
+            continue
         moments = slot.moments.get(r.label) or ("fp32" if written + parked_size(cfg, r, "fp32") <= room else "bf16")
-        written += park(cfg, r, carry_dir / r.label, moments)
+        tmp = carry_dir / f".{r.label}.writing"
+        shutil.rmtree(tmp, ignore_errors=True)
+        written += park(cfg, r, tmp, moments)
+        if old is not None:
+            shutil.rmtree(old)
+        tmp.rename(carry_dir / r.label)
         what = "done, the flown weights" if r.state == "done" else f"unfinished, {moments} moments"
         print(f"  kept: {r.label} ({what}): {mib(tree_bytes(carry_dir / r.label))}")
-    if not kept:
-        print(f"  nothing has trained here: {carry_dir}/ is empty")
+    if not written:
+        print(f"  nothing has trained here: {carry_dir}/ holds nothing")
         return
-    print(f"  wrote {carry_dir}/ ({mib(written)}); commit it: the next session and the next slot go on from it")
+    print(f"  {carry_dir}/ holds {mib(written)}; commit it: the next session and the next slot go on from it")
     if written > room:
         print(f"  the carry ({mib(written)}) is over the {mib(room)} a device call leaves it: a call would be "
               "refused; fly or drop finished runs, or finish an unfinished one here, first")

@@ -304,8 +304,13 @@ def test_runs_outlive_the_session_in_the_carry(tmp_path, data, two_epochs, capsy
     assert marker["dataset_hash"] == dataset_fingerprint(data)["dataset_hash"]
     stranger = tmp_path / "not_a_carry"
     (stranger / "tiny" / "notes").mkdir(parents=True)
-    with pytest.raises(SystemExit, match="holds notes, not carried runs; not emptied"):
+    with pytest.raises(SystemExit, match="holds notes, not carried runs; nothing written"):
         gpu.main(["carry", *common, "--run-dir", str(home), "--carry-dir", str(stranger)])
+    before = {p: p.read_bytes() for p in kept.rglob("*") if p.is_file()}
+    capsys.readouterr()  # a new checkout that did not restore: what is carried stays as it was
+    assert gpu.main(["carry", *common, "--run-dir", str(tmp_path / "empty"), "--carry-dir", str(carry)]) == 0
+    assert capsys.readouterr().out.count("kept as it was") == 2
+    assert {p: p.read_bytes() for p in kept.rglob("*") if p.is_file()} == before
 
     # a new checkout: restored, the CPU run goes on here as vitfly reproduce would, to the uninterrupted end
     new = tmp_path / "new"
