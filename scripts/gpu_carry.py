@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import json
 import shutil
+import subprocess
 from pathlib import Path
 
 from scripts.gpu_slots import MARKER, compact_moments, copy_run, epochs_done, mib, relocate, tree_bytes
@@ -32,6 +33,47 @@ ROOT = Path(__file__).resolve().parent.parent
 CARRY_DIR = "carry"  # carry/<preset>/<label>/: tracked, so it lands with a commit and travels with every call
 LAST, BEST = "last", "best"  # the checkpoints' names in a carried folder (NAME.safetensors + NAME.json)
 RUN_FILES = ("metrics.csv", "split.json", "cost.json", "hparams.yaml", "data.json")
+STOWED = "stowed.json"  # a finished run's weights left the tree: the commit and paths that hold them
+
+
+def git(folder: Path, *args: str) -> str | None:
+    """``git -C folder ARGS``'s output, or None where it fails (not a repository, path not tracked)."""
+    done = subprocess.run(["git", "-C", str(folder), *args], capture_output=True, text=True)
+    return done.stdout.strip() if done.returncode == 0 else None
+
+
+def stow(folder: Path) -> str | None:
+    """A finished run's carried weights (best.*) out of the tree, once a commit holds them as they are: they stay
+    in git's history, ``STOWED`` names where, and ``restore`` reads them back from there. Returns the commit, or
+    None (not committed yet, or changed since)."""
+    from vitfly.training import checkpoint_files
+
+    files = [p for p in checkpoint_files.paths(folder, BEST) if p.exists()]
+    top = git(folder, "rev-parse", "--show-toplevel")
+    if not files or top is None or git(folder, "status", "--porcelain", "--", *map(str, files)) != "":
+        return None
+    rel = [str(p.resolve().relative_to(Path(top).resolve())) for p in files]
+    commit = git(folder, "log", "-1", "--format=%H", "--", *map(str, files))
+    if not commit or any(git(folder, "cat-file", "-e", f"{commit}:{r}") is None for r in rel):
+        return None
+    stowed = {"commit": commit, "files": {p.name: r for p, r in zip(files, rel, strict=True)}}
+    (folder / STOWED).write_text(json.dumps(stowed) + "\n")
+    for p in files:
+        p.unlink()
+    return commit
+
+
+def unstow(carried: Path, dst: Path) -> None:
+    """The weights ``stow`` took out of the carried folder ``carried``, read back from its repository's history
+    into ``dst`` (one line if they cannot be)."""
+    record = json.loads((carried / STOWED).read_text())
+    for name, rel in record["files"].items():
+        data = subprocess.run(["git", "-C", str(carried), "show", f"{record['commit']}:{rel}"], capture_output=True)
+        if data.returncode != 0:
+            raise SystemExit(f"{carried / STOWED}: {rel} is not in commit {record['commit'][:12]} "
+                             f"({data.stderr.decode().strip()[:200]}); restore from a clone that has its history")
+        (dst / name).write_bytes(data.stdout)
+    (dst / STOWED).unlink()
 
 
 def lean_last(run: Path, moments: str) -> dict:
@@ -135,6 +177,12 @@ def write_carry(cfg, rows: list, slot, carry_dir: Path, room: int) -> None:
     written = 0
     for r in rows:
         old = carried.get(r.label)
+        if old is not None and (old / "done.json").exists():  # finished: it never changes again
+            commit = stow(old) if not (old / STOWED).exists() else None
+            written += tree_bytes(old)
+            print(f"  kept: {r.label} (done" + (f"; its weights now in git's history, commit {commit[:12]}: "
+                                                 "commit the carry again)" if commit else ")"))
+            continue
         here = float("inf") if r.state == "done" else epochs_done(r.folder) if r.folder else 0
         if old is not None and (r.folder is None or carried_epochs(old) > here):
             written += tree_bytes(old)
@@ -221,6 +269,8 @@ def restore(args) -> int:
             print(f"{dst}: {epochs_done(dst)} epochs here, {carried} carried; left alone")
         else:
             copy_run(folder, dst)
+            if (dst / STOWED).exists():
+                unstow(folder, dst)
             materialize(dst)
             print(f"{dst}: " + ("done" if carried is None else f"unfinished, {carried} epochs; vitfly reproduce "
                                 "or the next slot goes on from it"))

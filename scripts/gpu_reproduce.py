@@ -555,7 +555,7 @@ def status(args: argparse.Namespace) -> int:
     written into ``carry/<preset>/`` too (``scripts/gpu_carry.py``), the slot's with the moments it plans."""
     from scripts.gpu_carry import parked_size, write_carry
     from scripts.gpu_plan import next_slot
-    from scripts.gpu_slots import CARRY_BYTES, mib, travelling_bytes
+    from scripts.gpu_slots import CARRY_BYTES, mib, travelling_bytes, tree_bytes
 
     cfg = load_cfg(args)
     rows = run_states(cfg)
@@ -567,7 +567,9 @@ def status(args: argparse.Namespace) -> int:
     # kept in the carry but not for this slot: finished runs' weights, and runs trained on a CPU, counted as the
     # weights they will be (a CPU run goes on in the next session; GPU slots are rare, so they do not wait for it)
     others = [r for r in rows if r.folder is not None and (r.state == "done" or r.run.model in cfg.train.cpu_models)]
-    kept = sum(parked_size(cfg, r, "done") for r in others)
+    # a finished run already in the carry counts as it is there (its weights may be in git's history: stowed)
+    kept = sum(tree_bytes(carry_dir / r.label) if r.state == "done" and (carry_dir / r.label / "done.json").exists()
+               else parked_size(cfg, r, "done") for r in others)
     room = CARRY_BYTES - tree - kept
     slot = next_slot(cfg, [r for r in rows if r.run.model not in cfg.train.cpu_models or r.state == "not started"],
                      room, args.carry_moments, args.deadline_s, args.reserve_s, kept)

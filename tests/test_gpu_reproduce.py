@@ -337,8 +337,21 @@ def test_runs_outlive_the_session_in_the_carry(tmp_path, data, two_epochs, capsy
     assert sorted(p.name for p in (kept / "convnet-state").glob("*.*")) == [
         "best.json", "best.safetensors", "cost.json", "data.json", "done.json", "hparams.yaml", "metrics.csv",
         "split.json"]
+    # committed once, a finished run's weights leave the tree for git's history (they would take a device call's
+    # room), and restore reads them back from there
+    commit = ["git", "-C", str(carry), "-c", "user.name=t", "-c", "user.email=t@t", "commit", "-qm", "carry"]
+    subprocess.run(["git", "init", "-q", str(carry)], check=True)
+    subprocess.run(["git", "-C", str(carry), "add", "."], check=True)
+    subprocess.run(commit, check=True)
+    capsys.readouterr()
+    assert gpu.main(["carry", *common, "--run-dir", str(new), "--carry-dir", str(carry)]) == 0
+    assert capsys.readouterr().out.count("its weights now in git's history") == 2
+    assert not list(kept.rglob("best.*")) and (kept / "convnet-state" / "stowed.json").exists()
+    subprocess.run(["git", "-C", str(carry), "add", "-A"], check=True)
+    subprocess.run(commit, check=True)
     third = tmp_path / "third"
     assert gpu.main(["restore", *common, "--run-dir", str(third), "--carry-dir", str(carry)]) == 0
+    assert not (third / "train" / "convnet-state" / "stowed.json").exists()
     done = json.loads((third / "train" / "convnet-state" / "done.json").read_text())
     assert Path(done["checkpoint"]) == (third / "train" / "convnet-state" / "checkpoints" / "best.ckpt").resolve()
     flown = load_network(new / "train" / "convnet-state" / "checkpoints" / "best.ckpt").state_dict()
