@@ -554,7 +554,7 @@ def status(args: argparse.Namespace) -> int:
     """Every run of the preset and the next slot; with ``carry`` (``args.write_carry``), every run that trained here
     written into ``carry/<preset>/`` too (``scripts/gpu_carry.py``), the slot's with the moments it plans."""
     from scripts.gpu_carry import parked_size, write_carry
-    from scripts.gpu_plan import next_slot
+    from scripts.gpu_plan import FOLDER_BYTES, next_slot
     from scripts.gpu_slots import CARRY_BYTES, mib, travelling_bytes, tree_bytes
 
     cfg = load_cfg(args)
@@ -564,19 +564,20 @@ def status(args: argparse.Namespace) -> int:
         print(f"{r.label:<{width}}  {r.text}" + (f" ({mib(r.size)} here)" if r.size else ""))
     carry_dir = ROOT / args.carry_dir / cfg.preset
     tree = travelling_bytes(ROOT, leave_out=carry_dir)
-    # kept in the carry but not for this slot: finished runs' weights, and runs trained on a CPU, counted as the
-    # weights they will be (a CPU run goes on in the next session; GPU slots are rare, so they do not wait for it)
+    # kept in the carry but not for this slot: finished runs (their weights until a commit lets carry stow them in
+    # git's history), and runs trained on a CPU, counted as they will be once finished and stowed (a CPU run goes
+    # on in the next session; GPU slots are rare, so they do not wait for it)
     others = [r for r in rows if r.folder is not None and (r.state == "done" or r.run.model in cfg.train.cpu_models)]
-    # a finished run already in the carry counts as it is there (its weights may be in git's history: stowed)
-    kept = sum(tree_bytes(carry_dir / r.label) if r.state == "done" and (carry_dir / r.label / "done.json").exists()
+    carried = {r.label: carry_dir / r.label for r in others if (carry_dir / r.label / "done.json").exists()}
+    kept = sum(tree_bytes(carried[r.label]) if r.label in carried else FOLDER_BYTES if r.state != "done"
                else parked_size(cfg, r, "done") for r in others)
+    for r in others:
+        if r.state != "done":
+            print(f"  ({r.label}, on a CPU, is counted as it will be once finished and its weights stowed; its "
+                  f"state now, {mib(parked_size(cfg, r, 'bf16'))}, must be finished before the slot after next)")
     room = CARRY_BYTES - tree - kept
     slot = next_slot(cfg, [r for r in rows if r.run.model not in cfg.train.cpu_models or r.state == "not started"],
                      room, args.carry_moments, args.deadline_s, args.reserve_s, kept)
-    for r in others:
-        if r.state != "done":
-            print(f"  ({r.label}, on a CPU, is counted as the weights it will be: {mib(parked_size(cfg, r, 'done'))}; "
-                  f"its state now, {mib(parked_size(cfg, r, 'bf16'))}, must finish before the slot after next)")
     print(f"next slot carries {len(slot.carry)} unfinished runs, {mib(sum(slot.sizes.values()))} of the "
           f"{mib(room)} a call leaves beside the working tree and .whl/ ({mib(tree)}) and the rest of the carry "
           f"({mib(kept)})" + (f"; {', '.join(slot.no_room)} wait for a later slot (no room)" if slot.no_room else ""))
