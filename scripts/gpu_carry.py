@@ -32,7 +32,6 @@ from scripts.gpu_slots import MARKER, compact_moments, copy_run, epochs_done, mi
 ROOT = Path(__file__).resolve().parent.parent
 CARRY_DIR = "carry"  # carry/<preset>/<label>/: tracked, so it lands with a commit and travels with every call
 LAST, BEST = "last", "best"  # the checkpoints' names in a carried folder (NAME.safetensors + NAME.json)
-RUN_FILES = ("metrics.csv", "split.json", "cost.json", "hparams.yaml", "data.json")
 STOWED = "stowed.json"  # a finished run's weights left the tree: the commit and paths that hold them
 
 
@@ -113,9 +112,8 @@ def cpu_marker(cfg, r) -> dict:
 
 def park(cfg, r, dst: Path, moments: str) -> int:
     """Run ``r`` (``scripts.gpu_plan.RunState``) as its carried folder ``dst``; returns its bytes."""
-    from scripts.gpu_slots import slim
+    from scripts.gpu_slots import copy_run_files, slim
     from vitfly.training import checkpoint_files
-    from vitfly.training.metrics_csv import EARLIER_METRICS, merge_metrics
 
     run = r.folder
     dst.mkdir(parents=True)
@@ -129,10 +127,7 @@ def park(cfg, r, dst: Path, moments: str) -> int:
         marker = r.marker if r.state == "unfinished" else cpu_marker(cfg, r)
         checkpoint_files.write(lean_last(run, moments), dst, LAST)
         (dst / MARKER).write_text(json.dumps({**marker, "carried_moments": moments}) + "\n")
-    merge_metrics([run / EARLIER_METRICS, run / "metrics.csv"], dst / "metrics.csv", None)
-    for name in RUN_FILES[1:]:
-        if (run / name).exists():
-            shutil.copy(run / name, dst / name)
+    copy_run_files(run, dst, None)
     return tree_bytes(dst)
 
 

@@ -62,7 +62,6 @@ sys.path.insert(0, str(ROOT))
 
 from scripts.gpu_preset import load_cfg, local_data_hash, parse_label, run_dir  # noqa: E402
 
-RUN_FILES = ("metrics.csv", "split.json", "cost.json", "hparams.yaml", "data.json")  # what travels besides checkpoints
 SLOT_ENDED_RC = 3  # train-one's exit status when the slot ended before the run did
 SLOT_EPOCHS = "slot_epochs.json"  # train-one's measured epoch lengths (s) this slot; not carried home
 REPORT = "gpu_reproduce.json"  # what happened to each run, and the manifest of runs.tar.NNN
@@ -130,21 +129,13 @@ def slim_checkpoint(src: Path, dst: Path) -> dict:
     return {"epoch": int(obj.get("epoch", -1)), "global_step": int(obj.get("global_step", -1))}
 
 
-def copy_run_files(d: Path, dst: Path, epochs: int | None) -> None:
-    """Metrics (earlier slots' rows joined, rows of an unfinished epoch dropped), split, cost, hparams."""
-    from vitfly.training.metrics_csv import EARLIER_METRICS, merge_metrics
-
-    merge_metrics([d / EARLIER_METRICS, d / "metrics.csv"], dst / "metrics.csv", epochs)
-    for name in RUN_FILES[1:]:
-        if (d / name).exists():
-            shutil.copy(d / name, dst / name)
-
-
 def stage_finished(d: Path, dst: Path, slots: list[dict], data_hash: str, best_epoch: int | None = None) -> dict:
     """A finished run as it travels: slim best checkpoint and done.json naming it (made absolute by unpack). A run
     carried without its best.ckpt whose best epoch (``best_epoch``) came before this slot travels without one:
     unpack keeps the one at home."""
     import torch
+
+    from scripts.gpu_slots import copy_run_files
 
     (dst / "checkpoints").mkdir(parents=True)
     done = json.loads((d / "done.json").read_text())
@@ -164,7 +155,7 @@ def stage_unfinished(d: Path, dst: Path, marker: dict, moments: str) -> None:
     """An unfinished run as it travels: its resume state (``scripts/gpu_slots.py``) and ``unfinished.json``."""
     import torch
 
-    from scripts.gpu_slots import MARKER, compact_moments, save_atomic
+    from scripts.gpu_slots import MARKER, compact_moments, copy_run_files, save_atomic
 
     (dst / "checkpoints").mkdir(parents=True)
     last = torch.load(d / "checkpoints" / "last.ckpt", map_location="cpu", weights_only=True)
@@ -649,9 +640,14 @@ def add_commands(sub) -> dict:
     one.add_argument("--stop-after-epochs", type=int)
     one.add_argument("--epoch-s", type=float, help="expected epoch length until one is measured")
     one.add_argument("train_one", metavar="LABEL")
-    from scripts.gpu_carry import restore
-
     return {"train": train, "train-one": train_one, "status": status, "carry": status, "restore": restore}
+
+
+def restore(args: argparse.Namespace) -> int:
+    """``scripts/gpu_carry.py``'s restore, imported when it runs (it imports Lightning; the parser does not)."""
+    from scripts.gpu_carry import restore as restore_carry
+
+    return restore_carry(args)
 
 
 DEADLINE_S, RESERVE_S = 560.0, 40.0  # a command may run 600 s

@@ -29,6 +29,7 @@ MARKER = "unfinished.json"
 CARRY_BYTES = 64 * 2**20  # what the device tool carries to the machine, all paths together
 MOMENTS = ("exp_avg", "exp_avg_sq", "max_exp_avg_sq")  # Adam's per-parameter state besides `step`
 DROPPED_KEYS = ("optimizer_states", "lr_schedulers", "callbacks", "loops")  # resume state, not the network
+RUN_FILES = ("metrics.csv", "split.json", "cost.json", "hparams.yaml", "data.json")  # what travels besides checkpoints
 
 
 class SlotEnded(Exception):
@@ -206,3 +207,13 @@ def returned_hash(run: Path) -> str | None:
     if (run / MARKER).exists():
         return json.loads((run / MARKER).read_text()).get("dataset_hash")
     raise SystemExit(f"{run}: neither done.json nor {MARKER}; not a run packed by scripts/gpu.py train")
+
+
+def copy_run_files(d: Path, dst: Path, epochs: int | None) -> None:
+    """Metrics (earlier slots' rows joined, rows of an unfinished epoch dropped), split, cost, hparams."""
+    from vitfly.training.metrics_csv import EARLIER_METRICS, merge_metrics
+
+    merge_metrics([d / EARLIER_METRICS, d / "metrics.csv"], dst / "metrics.csv", epochs)
+    for name in RUN_FILES[1:]:
+        if (d / name).exists():
+            shutil.copy(d / name, dst / name)
