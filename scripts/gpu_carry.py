@@ -75,6 +75,11 @@ def unstow(carried: Path, dst: Path) -> None:
     (dst / STOWED).unlink()
 
 
+def preset_carry(carry_dir: str, preset: str) -> Path:
+    """``carry_dir/<preset>``, in the repository unless ``carry_dir`` is absolute."""
+    return ROOT / carry_dir / preset
+
+
 def lean_last(run: Path, moments: str) -> dict:
     """A run's last.ckpt with Adam's moments in ``moments`` (fp32: as they are)."""
     import torch
@@ -245,7 +250,7 @@ def restore(args) -> int:
     from scripts.gpu_preset import load_cfg, local_data_hash, run_dir
 
     cfg = load_cfg(args)
-    src = ROOT / args.carry_dir / cfg.preset  # an absolute --carry-dir stays itself
+    src = preset_carry(args.carry_dir, cfg.preset)
     if not src.is_dir():
         print(f"{src}: no carried runs")
         return 0

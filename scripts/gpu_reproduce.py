@@ -544,7 +544,7 @@ def run_states(cfg) -> list:
 def status(args: argparse.Namespace) -> int:
     """Every run of the preset and the next slot; with ``carry`` (``args.write_carry``), every run that trained here
     written into ``carry/<preset>/`` too (``scripts/gpu_carry.py``), the slot's with the moments it plans."""
-    from scripts.gpu_carry import parked_size, write_carry
+    from scripts.gpu_carry import parked_size, preset_carry, write_carry
     from scripts.gpu_plan import FOLDER_BYTES, next_slot
     from scripts.gpu_slots import CARRY_BYTES, mib, travelling_bytes, tree_bytes
 
@@ -553,7 +553,7 @@ def status(args: argparse.Namespace) -> int:
     width = max(len(r.label) for r in rows)
     for r in rows:
         print(f"{r.label:<{width}}  {r.text}" + (f" ({mib(r.size)} here)" if r.size else ""))
-    carry_dir = ROOT / args.carry_dir / cfg.preset
+    carry_dir = preset_carry(args.carry_dir, cfg.preset)
     tree = travelling_bytes(ROOT, leave_out=carry_dir)
     # kept in the carry but not for this slot: finished runs (their weights until a commit lets carry stow them in
     # git's history), and runs trained on a CPU, counted as they will be once finished and stowed (a CPU run goes
