@@ -36,6 +36,7 @@ from vitfly.datamodules.datamodule import TrajectoryDataModule
 from vitfly.packaged import find_config
 from vitfly.training.checkpoints import LastCheckpoint
 from vitfly.training.fit import checkpoint_defaults, default_wandb_offline, finish_wandb
+from vitfly.training.precision import usable_precision
 from vitfly.zoo.checkpoint import network_hparams
 from vitfly.zoo.legacy import read_torch_file
 from vitfly.zoo.policy import PolicyModule, check_policy_arguments, policy_class, register_policy_classes
@@ -117,6 +118,10 @@ class VitflyCLI(LightningCLI):
         # bad PolicyModule arguments as one line (jsonargparse would wrap the error in a page of its own)
         init_args = getattr(config.model, "init_args", None) or {}
         check_policy_arguments(**{k: init_args[k] for k in POLICY_CHECKED if k in init_args})
+        # bf16 autocast only where the CPU has bf16 kernels (the config saved beside the run says what ran)
+        trainer = config.trainer
+        trainer.precision, self.precision_notes = usable_precision(trainer.precision, trainer.accelerator,
+                                                                   f"vitfly {self.subcommand}")
         root = config.trainer.default_root_dir or RUN_ROOT
         loggers = config.trainer.logger
         for logger in loggers if isinstance(loggers, list) else [loggers]:
@@ -131,6 +136,7 @@ class VitflyCLI(LightningCLI):
             # last.ckpt beside best.ckpt (a --checkpoint.dirpath moves both); it runs after the best one
             best = next((cb for cb in callbacks if isinstance(cb, ModelCheckpoint)), None)
             callbacks = [*callbacks, LastCheckpoint(best.dirpath if best is not None else None)]
+        callbacks = [*callbacks, *getattr(self, "precision_notes", [])]
         has_bar = any(isinstance(cb, ProgressBar) for cb in [*listed, *callbacks])
         if config.get("enable_progress_bar", True) is not False and not has_bar:
             callbacks = [*callbacks, RichProgressBar()]

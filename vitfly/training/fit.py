@@ -91,6 +91,7 @@ def train_policy(
 
     from vitfly.datamodules.datamodule import TrajectoryDataModule
     from vitfly.training.checkpoints import LastCheckpoint, RngState
+    from vitfly.training.precision import trainer_precision
     from vitfly.zoo.policy import create_policy
 
     if select not in SELECT:
@@ -111,9 +112,10 @@ def train_policy(
     checkpoint = ModelCheckpoint(dirpath=ckpt_dir, **checkpoint_defaults()) if select == "best" else None
     # best first: Trainer.checkpoint_callback (ckpt_path="best") is the first ModelCheckpoint
     bar = [RichProgressBar()] if progress_bar else []
+    trainer_kwargs, notes = trainer_precision(trainer_kwargs or {}, f"train {model}")  # bf16 only where it pays
     # RngState: a resumed run draws the dropout masks the uninterrupted one would have drawn
     callbacks = [*([checkpoint] if checkpoint else []), LastCheckpoint(ckpt_dir), RngState(), *bar,
-                 *(callbacks or [])]
+                 *(callbacks or []), *notes]
     trainer = L.Trainer(
         max_epochs=max_epochs,
         default_root_dir=out_dir,
@@ -121,7 +123,7 @@ def train_policy(
         callbacks=callbacks,
         enable_progress_bar=progress_bar,
         # the datamodule's batch sampler shards itself across DDP ranks (trainer_kwargs strategy="ddp", devices=N)
-        **{"enable_model_summary": False, "use_distributed_sampler": False, **(trainer_kwargs or {})},
+        **{"enable_model_summary": False, "use_distributed_sampler": False, **trainer_kwargs},
     )
     last = ckpt_dir / "last.ckpt"
     if last.exists():
