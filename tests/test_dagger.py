@@ -242,7 +242,6 @@ def tiny_run(tmp_path_factory):
     return SimpleNamespace(cfg=cfg, out=out, first=first, flown=flown, report=report)
 
 
-@pytest.mark.once
 def test_tiny_end_to_end(tiny_run):
     out = tiny_run.out
     for name in ("dagger.md", "dagger.csv", "dagger.json", "success_vs_frames.png", "paths_spheres.png"):

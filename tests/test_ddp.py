@@ -148,7 +148,6 @@ def _run(args: list[str], timeout_s: float) -> subprocess.CompletedProcess:
     return subprocess.CompletedProcess(proc.args, proc.returncode, out)
 
 
-@pytest.mark.once
 def test_vitfly_fit_ddp_on_two_cpu_ranks_trains_each_rank_on_its_own_half(tmp_path):
     # lengths 9..12 with 4-step chunks: every batch is 3 optimiser steps (ceil(L / 4) = 3 for 9 <= L <= 12)
     data = write_dataset(tmp_path / "d.h5", [9, 12, 10, 11, 9, 12, 10, 11, 10, 12])

@@ -141,7 +141,6 @@ def test_bad_policy_is_one_line_and_no_output(tmp_path, capsys):
     assert not out.exists()
 
 
-@pytest.mark.once
 def test_worker_processes_give_the_same_trials(tmp_path):
     one, two = tmp_path / "one", tmp_path / "two"
     args = ["--policy", "expert", "--speeds", "5", "--trials", "2", "--num-envs", "1"]
@@ -250,7 +249,6 @@ def test_goal_crossing_defines_time_to_goal(tmp_path):
         assert 59.5 / 7.0 < rec.metrics["time_to_goal_s"] < 59.5 / 6.0
 
 
-@pytest.mark.once
 def test_killed_sweep_resumes(tmp_path, capsys):
     import subprocess
     import sys

@@ -148,7 +148,6 @@ def test_export_command_from_registry_name_and_checkpoint(tmp_path, capsys):
 
 
 @needs_fixtures
-@pytest.mark.once
 def test_exported_original_checkpoint_reproduces_the_stored_outputs(tmp_path):
     out = tmp_path / "vit_lstm.onnx"
     assert main(["export", str(FIXTURES / "vit_lstm.pth"), "--arch", "vit_lstm", "--out", str(out)]) == 0
@@ -233,7 +232,6 @@ def test_bound_step_matches_the_plain_runner(lstmnet_onnx):
     assert np.abs(bound.hidden[0]).sum() == 0
 
 
-@pytest.mark.once
 def test_unoptimised_export_of_a_spectral_norm_lstm_network():
     torch.manual_seed(5)
     net = create_model("lstmnet").eval()  # SN layers and nn.LSTM traced as written

@@ -120,7 +120,6 @@ def test_replay_batches_flights_as_the_rollout_would(flights):
 
 
 @pytest.mark.parametrize(("name", "int8_products"), [("convnet", 0), ("vit_lstm", 6)])
-@pytest.mark.once
 def test_fast_paths_fly_the_eager_commands(flights, name, int8_products):
     torch.manual_seed(0)
     net = create_model(name).eval()

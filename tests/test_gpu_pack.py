@@ -135,7 +135,6 @@ def test_unpack_takes_what_a_folder_holds(tmp_path, folders, capsys):
         gpu.main(["unpack", str(out), "--into", str(tmp_path / "study")])
 
 
-@pytest.mark.once
 def test_evaluate_packs_records_that_merge_into_a_local_sweep(tmp_path, monkeypatch, capsys):
     gpu = load_script("gpu")
     for key in ("MPLBACKEND", "WANDB_MODE", "PYTHONUNBUFFERED"):  # what gpu.py sets for a job there

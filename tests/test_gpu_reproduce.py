@@ -66,7 +66,6 @@ def two_epochs(tmp_path_factory) -> Path:
     return path
 
 
-@pytest.mark.once
 def test_runs_trained_elsewhere_come_back_as_done(tmp_path, data, capsys):
     gpu = load_script("gpu")  # the one entry point (gpu_reproduce.py hands over to it)
     run_dir, out = tmp_path / "run", tmp_path / "back"
@@ -138,7 +137,6 @@ def assert_same_training(a: Path, b: Path) -> None:
             assert value.dtype == adam_b[i][key].dtype and torch.equal(value, adam_b[i][key]), (i, key)
 
 
-@pytest.mark.once
 def test_a_run_stopped_in_one_slot_resumes_in_the_next_exactly(tmp_path, data, two_epochs, capsys):
     gpu = load_script("gpu")
     common = ["--config", str(two_epochs), "--preset", "tiny", "--data", str(data)]
@@ -250,7 +248,6 @@ def test_a_run_stopped_in_one_slot_resumes_in_the_next_exactly(tmp_path, data, t
     assert 0 < off < 0.01 * moved  # measured: 0.14 % of the distance the resumed epoch moved the weights
 
 
-@pytest.mark.once
 def test_states_too_large_for_the_trip_back_come_home_with_bf16_moments(tmp_path, data, two_epochs):
     """ViT+LSTM (47.8 MiB with fp32 moments, 34.2 with bf16) and ConvNet (3.2 MiB) against a 40 MiB trip back:
     only ViT+LSTM's moments need to shrink (37.4 MiB), and nothing is left behind."""
@@ -280,7 +277,6 @@ def stop_after_one_epoch(cfg, label: str, data: Path, train_dir: Path) -> None:
         stage_train(stage, data, train_dir, 1, progress=False, callbacks=[*callbacks, slots.SlotStop(None, 1)])
 
 
-@pytest.mark.once
 def test_runs_outlive_the_session_in_the_carry(tmp_path, data, two_epochs, capsys):
     """A new checkout has no runs/: ``carry`` keeps every run that trained here in carry/<preset>/ as safetensors
     and JSON (no pickle), ``restore`` puts them back, and they go on: one stopped by a slot resumes on the GPU

@@ -104,7 +104,6 @@ def calibration():
 
 
 @pytest.mark.parametrize("name", ["vit", "vit_lstm"])
-@pytest.mark.once
 def test_int8_vit_convolutions_fly_the_float_commands(flights, calibration, name, monkeypatch):
     # the ViT's sigmoid-GELU uint8 chain, off by default (trained weights), is still built when asked for
     monkeypatch.setattr("vitfly.deploy.optimize.QUICK_GELU_STAGES", {"vit": (0, 1)})

@@ -32,7 +32,6 @@ def flights():
 
 
 @pytest.mark.parametrize("name", ["lstmnet", "vit_lstm"])
-@pytest.mark.once
 def test_int8_export_of_trained_weights_checks_and_flies_the_float_commands(flights, name):
     net = PolicySource(f"pretrained:{name}").load_network().eval()
     calibration = calibration_depth(seconds=2.0) if needs_calibration(net) else None

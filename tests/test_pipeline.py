@@ -90,7 +90,6 @@ def test_evaluate_stage_flies_a_retrained_model_again(tmp_path, capsys):
     assert about["setup"]["policy_id"] == next(iter(ids[2]))
 
 
-@pytest.mark.once
 def test_tiny_pipeline_end_to_end_and_resume(tmp_path, capsys):
     out, data = tmp_path / "run", tmp_path / "data" / "d.h5"
     cfg = tmp_path / "tiny.yaml"

@@ -103,7 +103,6 @@ def test_tampered_missing_and_mismatched_files_are_one_line(tmp_path):
         save_pretrained(ckpt, "../x", {}, weights)
 
 
-@pytest.mark.once
 def test_cli_evaluates_and_exports_pretrained_weights(tmp_path):
     _, ckpt = random_checkpoint(tmp_path, "convnet")
     weights = tmp_path / "weights"
@@ -127,7 +126,6 @@ def test_cli_evaluates_and_exports_pretrained_weights(tmp_path):
     assert run.returncode == 2 and len(errors) == 1 and "vitfly: error: pretrained:nope: not in" in errors[0]
 
 
-@pytest.mark.once
 def test_publish_weights_command_records_the_dataset(tmp_path):
     from test_datamodule import write_dataset
 
@@ -151,7 +149,6 @@ def test_shipped_manifest_is_valid():
         assert entry["dtype"] == "float16"
 
 
-@pytest.mark.once
 def test_published_weights_fly_with_their_training_sensor(tmp_path):
     # a checkpoint trained at 15 Hz: its published weights must fly at 15 Hz too (steps of 1/15 s), not the default 30
     ckpt = tmp_path / "convnet15.ckpt"

@@ -58,7 +58,6 @@ def data_path(tmp_path_factory):
     return write_dataset(tmp_path_factory.mktemp("data") / "d.h5", [12, 9, 15, 7, 11])
 
 
-@pytest.mark.once
 def test_tiny_fit_prints_no_banners(data_path, tmp_path):
     code, out = run(["fit", "--config", str(REPO / "configs/fit/convnet.yaml"), "--data.data_path", data_path,
                      "--data.num_workers", "0", "--data.batch_size", "2", "--trainer.max_epochs", "1",
@@ -79,7 +78,6 @@ def test_collect_prints_its_summary_and_no_banners(tmp_path):
     assert "1 trajectories (1 new)" in out  # vitfly's own summary line survives
 
 
-@pytest.mark.once
 def test_a_genuine_error_is_its_one_line(tmp_path):
     missing = tmp_path / "missing.h5"
     code, out = run(["fit", "--config", str(REPO / "configs/fit/convnet.yaml"), "--data.data_path", str(missing),
@@ -89,7 +87,6 @@ def test_a_genuine_error_is_its_one_line(tmp_path):
     assert out.strip().splitlines() == [f"vitfly: error: {missing}: no such dataset file"]
 
 
-@pytest.mark.once
 def test_verbose_env_lets_lightning_speak(tmp_path):
     missing = tmp_path / "missing.h5"
     code, out = run(["fit", "--config", str(REPO / "configs/fit/convnet.yaml"), "--data.data_path", str(missing),

@@ -344,7 +344,6 @@ def test_bad_train_source_is_one_line(tmp_path, text, message):
     assert "\n" not in str(err.value)
 
 
-@pytest.mark.once
 def test_pretrained_source_evaluates_and_records_closed_loop(tmp_path, monkeypatch):
     from test_pretrained import random_checkpoint
 

@@ -68,7 +68,6 @@ def test_bad_draws_are_one_line(tmp_path, monkeypatch, draws, message):
     assert "\n" not in str(err.value)
 
 
-@pytest.mark.once
 def test_a_tiny_study_with_draws_trains_flies_and_reports_them(tmp_path, monkeypatch):
     from vitfly.eval import records
     from vitfly.workflows.reproduce import run_reproduce

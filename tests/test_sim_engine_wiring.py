@@ -144,7 +144,6 @@ def collect_file(tmp_path, name, *args):
     return out
 
 
-@pytest.mark.once
 def test_collect_batched_writes_the_numpy_dataset(tmp_path, capsys):
     ref = collect_file(tmp_path, "numpy")
     got = collect_file(tmp_path, "batched", "--sim", "batched", "--num-envs", "2")

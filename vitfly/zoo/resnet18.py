@@ -6,7 +6,6 @@ features; head: + state (5) -> Linear 256 (leaky ReLU) -> Linear 3. Nothing is e
 
 from __future__ import annotations
 
-import timm
 import torch
 import torch.nn.functional as F
 from torch import nn
@@ -24,6 +23,8 @@ class ResNet18Policy(DepthPolicyNet):
 
     def __init__(self, use_state: bool = True, head_hidden: int = 256) -> None:
         super().__init__(use_state)
+        import timm  # here, not at the top: timm imports torchvision, seconds that only ResNet-18 needs
+
         self.encoder = timm.create_model("resnet18", pretrained=False, in_chans=1, num_classes=0)
         self.fc1 = nn.Linear(self.encoder.num_features + STATE_DIM, head_hidden)
         self.fc2 = nn.Linear(head_hidden, 3)
