@@ -1,4 +1,4 @@
-"""The Trainer's precision on the machine at hand: bf16 autocast on a CPU only where it computes bf16 natively.
+"""The Trainer's precision on the machine at hand: bf16 autocast on a CPU only where oneDNN has bf16 kernels.
 
 The shipped ViT configs train under ``bf16-mixed``, which pays on a GPU and on CPUs with AVX512 (best with
 AVX512-BF16 or AMX). A CPU without them (e.g. an AVX2-only AMD EPYC) emulates every bf16 matrix product: the
