@@ -28,6 +28,8 @@ def cpu_flags() -> set[str]:
 def test_bf16_kernels_follow_the_cpu_flags():
     """oneDNN's bf16 kernels need AVX512 at least: none without any avx512 flag, always with AVX512-BF16 or AMX."""
     flags = cpu_flags()
+    if any(f.startswith("avx512") for f in flags) and not {"avx512_bf16", "amx_bf16"} & flags:
+        pytest.skip("AVX512 without AVX512-BF16 or AMX: oneDNN's choice there is its own")
     if not any(f.startswith("avx512") for f in flags):
         assert precision.cpu_has_native_bf16() is False
     if {"avx512_bf16", "amx_bf16"} & flags:
