@@ -22,7 +22,9 @@ from pathlib import Path
 
 import pytest
 
-pytestmark = pytest.mark.slow  # about 1.5 min: a wheel, two venvs, one evaluation trial and the tiny main job
+# about 1.5 min: a wheel, two venvs, five evaluation trials and the tiny main job; the tests share one venv, so
+# they run on one xdist worker (`--dist loadgroup`)
+pytestmark = [pytest.mark.slow, pytest.mark.xdist_group("installed_wheel")]
 
 REPO = Path(__file__).resolve().parents[1]
 SOURCES = ("pyproject.toml", "README.md", "vitfly", "configs", "weights")
