@@ -108,7 +108,10 @@ def fly(scenes: Sequence, speeds: Sequence[float], policy, config=None,
         from vitfly.sim.rollout import run_episodes
 
         return run_episodes(scenes, speeds, policy, config, on_episode_end=on_episode_end, camera_seed=camera_seed)
+    import torch
+
     from vitfly.sim.batched.rollout import run_batched
 
-    return run_batched(scenes, speeds, policy, config, on_episode_end=on_episode_end, camera_seed=camera_seed,
-                       settings=engine.settings())
+    with torch.no_grad():  # flights to score or to record want no gradients: a tenth less time per eager tick
+        return run_batched(scenes, speeds, policy, config, on_episode_end=on_episode_end, camera_seed=camera_seed,
+                           settings=engine.settings())
