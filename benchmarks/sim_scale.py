@@ -53,7 +53,7 @@ def evaluation(args, workdir: Path, engine: str, trials: int, run: str) -> dict:
                       num_envs=args.num_envs if batched else 16, device=args.device, threads=args.threads,
                       sim=engine, sim_device=args.device if batched else "cpu",
                       sim_dtype=args.dtype if batched else "float64", sim_compile=batched and not args.eager,
-                      gif=False, plots=False).validate()
+                      timeout_s=args.timeout, gif=False, plots=False).validate()
     start = time.perf_counter()
     outcome = run_sweep(cfg, progress=False)
     wall = time.perf_counter() - start  # with the policy's loading, as a user's sweep
@@ -97,6 +97,9 @@ def main() -> None:
                         help="the batched engine once more in the same process (compiled kernels reused): "
                              "the rate of every sweep after a process's first")
     parser.add_argument("--seed", type=int, default=2323, help="the evaluation's sweep seed")
+    parser.add_argument("--timeout", type=float, default=None,
+                        help="seconds per evaluation trial (default: the sweep's, longer for slower flights); "
+                             "short ones make a quick check of the script, not a measurement")
     parser.add_argument("--threads", type=int, default=1, help="torch threads")
     parser.add_argument("--skip-eval", action="store_true")
     parser.add_argument("--skip-collect", action="store_true")

@@ -52,14 +52,14 @@ def test_agreement_counts_outcomes_pair_by_pair(bench):
 @pytest.mark.slow
 def test_sim_scale_flies_the_same_trials_with_both_engines(tmp_path, monkeypatch):
     # benchmarks/sim_scale.py end to end, tiny and eager: in float64 both engines fly the same trials (exact
-    # engines, the same scenes) and collect the same frames (without --warm: eager, a second run adds nothing)
+    # engines, the same scenes; 3 s each) and collect the same frames (no --warm: eager, a rerun adds nothing)
     spec = importlib.util.spec_from_file_location("sim_scale", REPO / "benchmarks" / "sim_scale.py")
     scale = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(scale)
     out = tmp_path / "scale.json"
     monkeypatch.setattr("sys.argv", ["sim_scale", "--eager", "--dtype", "float64", "--trials", "3",
                                      "--numpy-trials", "3", "--num-envs", "3", "--flights", "2",
-                                     "--numpy-flights", "2", "--json", str(out)])
+                                     "--numpy-flights", "2", "--timeout", "3", "--json", str(out)])
     scale.main()
     got = json.loads(out.read_text())
     ev, co = got["evaluation"], got["collection"]
