@@ -27,7 +27,7 @@ def test_tiny_preset_overrides_the_papers_protocol():
     tiny = load_ablation_config("configs/ablate.yaml", "tiny", {"models": ["convnet"]})
     assert tiny.train.max_epochs == 1 and tiny.train.policy_kwargs["lr"] == 1e-3
     assert tiny.evaluate.speeds == [3.0, 5.0, 7.0] and tiny.evaluate.trials == 2  # merged, not replaced
-    assert tiny.collect["seed"] == 0 and tiny.collect["trajectories"] == 12
+    assert tiny.collect["seed"] == 0 and tiny.collect["trajectories"] == 6 and tiny.evaluate.timeout_s == 5.0
     with pytest.raises(Exception, match="no preset 'huge'"):
         load_ablation_config("configs/ablate.yaml", "huge")
 
