@@ -102,7 +102,8 @@ class SimEngine:
 def fly(scenes: Sequence, speeds: Sequence[float], policy, config=None,
         on_episode_end: Callable | None = None, camera_seed: int | None = None,
         engine: SimEngine | None = None) -> list:
-    """:func:`vitfly.sim.rollout.run_episodes` on the chosen engine (the numpy one by default)."""
+    """:func:`vitfly.sim.rollout.run_episodes` on the chosen engine (the numpy one by default), without
+    gradients (train through :func:`vitfly.sim.batched.rollout.run_batched` itself)."""
     engine = engine or SimEngine()
     if not engine.batched:
         from vitfly.sim.rollout import run_episodes
