@@ -200,3 +200,34 @@ def test_wandb_offline_run_holds_table_plots_and_gif(tmp_path, monkeypatch):
     media = {p.parent.name + "/" + p.name.split("_0_")[0] for p in (tmp_path / "wandb").rglob("media/*/*")}
     assert {"images/rates_vs_speed", "images/energy_vs_speed", "table/summary", "videos/depth"} <= media
     assert "offline-run" in run_dir
+
+
+def test_reports_are_written_again_only_when_their_inputs_change(tmp_path, monkeypatch):
+    from vitfly.eval.evaluation import REPORTS_STAMP, write_outputs
+
+    drawn = []
+    real = plots.write_standard_plots
+    monkeypatch.setattr(plots, "write_standard_plots", lambda *a, **k: drawn.append(1) or real(*a, **k))
+    for rec in sweep("expert") + sweep("convnet"):
+        records.append_record(tmp_path / "trials.jsonl", rec)
+    rows, files = write_outputs(tmp_path, title="first")
+    assert set(files) >= {"csv", "markdown", "paired", "rates_vs_speed", "paths_spheres"} and len(drawn) == 1
+    stamp = json.loads((tmp_path / REPORTS_STAMP).read_text())
+    assert stamp["files"]["paths_spheres"] == "paths_spheres.png" and stamp["key"]["title"] == "first"
+    mtimes = {name: p.stat().st_mtime_ns for name, p in files.items()}
+
+    # nothing new: the same files, untouched, nothing drawn
+    again_rows, again = write_outputs(tmp_path, title="first")
+    assert again == files and again_rows == rows and len(drawn) == 1
+    assert {name: p.stat().st_mtime_ns for name, p in files.items()} == mtimes
+    # another title, a missing plot, a new record, plots no longer wanted: written again
+    write_outputs(tmp_path, title="second")
+    assert len(drawn) == 2 and "second" in files["markdown"].read_text()
+    files["energy_vs_speed"].unlink()
+    write_outputs(tmp_path, title="second")
+    assert len(drawn) == 3 and files["energy_vs_speed"].exists()
+    records.append_record(tmp_path / "trials-part2.jsonl", make_record("straight", "spheres", 3.0, 0, seed=11))
+    rows, files = write_outputs(tmp_path, title="second")
+    assert len(drawn) == 4 and len(rows) == 5 and "straight" in files["csv"].read_text()
+    rows, files = write_outputs(tmp_path, with_plots=False, title="second")
+    assert len(drawn) == 4 and set(files) == {"csv", "markdown", "paired"}

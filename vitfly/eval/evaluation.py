@@ -7,6 +7,7 @@ one label holds trials of two setups (e.g. two checkpoints) is refused rather th
 
 from __future__ import annotations
 
+import hashlib
 import json
 import re
 from collections.abc import Sequence
@@ -44,20 +45,47 @@ def scene_of(records_: Sequence[records.TrialRecord], env: str, preset: str, see
     return make_scene(env, preset, seed)
 
 
+REPORTS_STAMP = "reports.json"  # what the reports of a sweep directory were last written from
+
+
+def _reports_key(out_dir: Path, with_plots: bool, title: str | None) -> dict:
+    """The inputs of ``write_outputs``: every trial file's bytes, the title, whether plots, vitfly's version."""
+    from vitfly import __version__
+
+    digest = hashlib.sha256()
+    for path in records.iter_trial_files(out_dir):
+        digest.update(path.name.encode() + b"\0" + path.read_bytes() + b"\0")
+    return {"records_sha256": digest.hexdigest(), "plots": with_plots, "title": title, "vitfly_version": __version__}
+
+
 def write_outputs(out_dir: str | Path, with_plots: bool = True, title: str | None = None) -> tuple[list, dict]:
-    """summary.csv, summary.md and the plots from every record in ``out_dir``."""
+    """summary.csv, summary.md and the plots from every record in ``out_dir``.
+
+    Written again only when the records (or the title, or whether plots are wanted) changed since the last
+    time: a resumed sweep that flew nothing new costs no redrawing (about a second a figure). The stamp
+    ``reports.json`` is written last, so reports cut short by a kill are written again.
+    """
+    out_dir = Path(out_dir)
     recs = records.read_sweep(out_dir)
     if not recs:
         raise VitflyError(f"{out_dir}: no finished trials (trials*.jsonl) to report on")
     records.check_consistent(recs, str(out_dir))
     rows = summarize(recs)
+    key, stamp = _reports_key(out_dir, with_plots, title), out_dir / REPORTS_STAMP
+    if stamp.exists():
+        stored = json.loads(stamp.read_text())
+        files = {name: out_dir / file for name, file in stored.get("files", {}).items()}
+        if stored.get("key") == key and all(path.exists() for path in files.values()):
+            return rows, files
     files = dict(write_reports(out_dir, rows, title))
     if len({r.policy for r in recs}) > 1:  # policies flown on the same scenes: their paired differences
-        files["paired"] = Path(out_dir) / "paired.csv"
+        files["paired"] = out_dir / "paired.csv"
         write_text(files["paired"], paired_csv(paired_rows(recs)))
     if with_plots:
         files.update(plots.write_standard_plots(
             out_dir, rows, recs, scene_loader=lambda env, preset, seed: scene_of(recs, env, preset, seed)))
+    write_text(stamp, json.dumps({"key": key, "files": {name: str(Path(path).relative_to(out_dir))
+                                                        for name, path in files.items()}}, indent=2) + "\n")
     return rows, files
 
 

@@ -158,15 +158,11 @@ def stage_train(t: TrainStage, data: str | Path, train_dir: Path, threads: int =
 
     ``callbacks`` join the Trainer's (they are not part of the settings a finished run is compared by).
     """
-    marker = Path(train_dir) / "done.json"
-    wanted = train_settings(t, data)
-    check_trained_data(Path(train_dir), data)
-    if marker.exists():
-        done = json.loads(marker.read_text())
-        if same_settings(done.get("train"), wanted) and Path(done["checkpoint"]).exists():
-            print(f"[train] done before: {done['checkpoint']}")
-            return Path(done["checkpoint"])
-        # other settings (e.g. more epochs): train_policy goes on from last.ckpt
+    done = finished_checkpoint(t, data, train_dir)
+    if done is not None:
+        print(f"[train] done before: {done}")
+        return done
+    # not started, or finished with other settings (e.g. fewer epochs): train_policy goes on from last.ckpt
     import torch
 
     from vitfly.training import train_policy
@@ -177,9 +173,22 @@ def stage_train(t: TrainStage, data: str | Path, train_dir: Path, threads: int =
                         policy_kwargs=t.policy_kwargs, data_kwargs=t.data_kwargs,
                         trainer_kwargs={"enable_model_summary": False, **t.trainer_kwargs}, progress_bar=progress,
                         callbacks=callbacks, select=t.select)
-    write_text(marker, json.dumps({"checkpoint": str(ckpt), "train": wanted}) + "\n")
+    write_text(Path(train_dir) / "done.json", json.dumps({"checkpoint": str(ckpt), "train": train_settings(t, data)})
+               + "\n")
     print(f"[train] {t.model} (use_state={t.use_state}): {ckpt}")
     return ckpt
+
+
+def finished_checkpoint(t: TrainStage, data: str | Path, train_dir: Path) -> Path | None:
+    """The best checkpoint of the run in ``train_dir`` if it finished with ``t``'s settings on ``data``, else None
+    (a run folder of other data is refused)."""
+    marker = Path(train_dir) / "done.json"
+    check_trained_data(Path(train_dir), data)
+    if marker.exists():
+        done = json.loads(marker.read_text())
+        if same_settings(done.get("train"), train_settings(t, data)) and Path(done["checkpoint"]).exists():
+            return Path(done["checkpoint"])
+    return None
 
 
 def train_settings(t: TrainStage, data: str | Path) -> dict:

@@ -34,7 +34,14 @@ from pathlib import Path
 
 from vitfly.atomic import write_text
 from vitfly.errors import VitflyError
-from vitfly.workflows.pipeline import EvalStage, TrainStage, stage_collect, stage_evaluate, stage_train
+from vitfly.workflows.pipeline import (
+    EvalStage,
+    TrainStage,
+    finished_checkpoint,
+    stage_collect,
+    stage_evaluate,
+    stage_train,
+)
 from vitfly.workflows.reproduce_config import (
     STAGES,
     ReproduceConfig,
@@ -44,6 +51,7 @@ from vitfly.workflows.reproduce_config import (
     modular_stage,
     paths_plan,
     runs,
+    split_callbacks,
     train_callbacks,
     train_frames,
     train_stage,
@@ -89,14 +97,16 @@ def stage_train_all(cfg: ReproduceConfig, progress: bool = True) -> dict[str, Pa
     checkpoints = {}
     for run in runs(cfg):
         model, use_state = run.model, run.use_state
-        stage, callbacks = train_callbacks(train_stage(cfg, model, use_state, seed=run.seed), cfg, "reproduce config")
+        stage = train_stage(cfg, model, use_state, seed=run.seed)
         train_dir = cfg.train_dir(*run)
-        marker = train_dir / "done.json"
-        before = marker.read_text() if marker.exists() else None
-        fit_before_s = _fit_seconds(train_dir)
-        t0 = time.perf_counter()
-        ckpt = stage_train(stage, cfg.data, train_dir, cfg.threads, progress, callbacks=callbacks)
-        if marker.read_text() != before:  # it trained (done.json is rewritten only then)
+        ckpt = finished_checkpoint(split_callbacks(stage)[0], cfg.data, train_dir)
+        if ckpt is not None:  # its callbacks are not built: a rerun of a finished study needs no Lightning
+            print(f"[train] done before: {ckpt}")
+        else:
+            stage, callbacks = train_callbacks(stage, cfg, "reproduce config")
+            fit_before_s = _fit_seconds(train_dir)
+            t0 = time.perf_counter()
+            ckpt = stage_train(stage, cfg.data, train_dir, cfg.threads, progress, callbacks=callbacks)
             cost = _add_cost(train_dir, time.perf_counter() - t0, fit_before_s)
             killed = f" ({cost['killed_s'] / 60:.1f} of them in killed sessions)" if cost["killed_s"] else ""
             print(f"[train] {run.label}: {cost['wall_s'] / 60:.1f} min of training so far{killed}")

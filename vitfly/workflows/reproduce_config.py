@@ -335,15 +335,22 @@ def train_callbacks(stage: TrainStage, cfg: ReproduceConfig, source: str) -> tup
     a stopwatch (Lightning's ``Timer``) where no ``max_time`` brings one: ``cost.json`` reads it."""
     from lightning.pytorch.callbacks import Timer
 
-    kwargs = dict(stage.trainer_kwargs)
-    specs = kwargs.pop("callbacks", None) or []
-    callbacks = [_instantiate(s, f"{source}: trainer.callbacks") for s in (specs if isinstance(specs, list)
-                                                                           else [specs])]
+    stage, specs = split_callbacks(stage)
+    kwargs = stage.trainer_kwargs
+    callbacks = [_instantiate(s, f"{source}: trainer.callbacks") for s in specs]
     if cfg.train.closed_loop_check is not None:
         callbacks.append(_closed_loop_check(cfg.train.closed_loop_check, source))
     if kwargs.get("max_time") is None and not any(isinstance(c, Timer) for c in callbacks):
         callbacks.append(Timer(duration=None, verbose=False))  # its state in last.ckpt counts killed sessions
-    return dataclasses.replace(stage, trainer_kwargs=kwargs), callbacks
+    return stage, callbacks
+
+
+def split_callbacks(stage: TrainStage) -> tuple[TrainStage, list]:
+    """``stage`` without ``trainer_kwargs.callbacks`` (the settings a finished run is compared by), and those
+    callbacks' specs (class_path + init_args), unbuilt: building them imports Lightning (seconds)."""
+    kwargs = dict(stage.trainer_kwargs)
+    specs = kwargs.pop("callbacks", None) or []
+    return dataclasses.replace(stage, trainer_kwargs=kwargs), specs if isinstance(specs, list) else [specs]
 
 
 TRAIN_SOURCES = ("train", "pretrained")
