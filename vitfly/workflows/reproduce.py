@@ -97,13 +97,13 @@ def stage_train_all(cfg: ReproduceConfig, progress: bool = True) -> dict[str, Pa
     checkpoints = {}
     for run in runs(cfg):
         model, use_state = run.model, run.use_state
-        stage = train_stage(cfg, model, use_state, seed=run.seed)
-        train_dir = cfg.train_dir(*run)
-        ckpt = finished_checkpoint(split_callbacks(stage)[0], cfg.data, train_dir)
+        recipe = train_stage(cfg, model, use_state, seed=run.seed)
+        stage, train_dir = split_callbacks(recipe)[0], cfg.train_dir(*run)
+        ckpt = finished_checkpoint(stage, cfg.data, train_dir)
         if ckpt is not None:  # its callbacks are not built: a rerun of a finished study needs no Lightning
             print(f"[train] done before: {ckpt}")
         else:
-            stage, callbacks = train_callbacks(stage, cfg, "reproduce config")
+            stage, callbacks = train_callbacks(recipe, cfg, "reproduce config")
             fit_before_s = _fit_seconds(train_dir)
             t0 = time.perf_counter()
             ckpt = stage_train(stage, cfg.data, train_dir, cfg.threads, progress, callbacks=callbacks)
