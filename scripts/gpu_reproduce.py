@@ -287,13 +287,13 @@ def start_runs(args, labels: list[str], resumed: dict, stop_at: float, work: Pat
 def wait_runs(procs: dict, deadline: float) -> dict[str, tuple[int | None, float]]:
     """label -> (exit status, or None if killed at ``deadline``; wall seconds)."""
     ended: dict[str, tuple[int | None, float]] = {}
-    while len(ended) < len(procs):
+    while True:
         for label, (p, t0) in procs.items():
             if label not in ended and p.poll() is not None:
                 ended[label] = (p.returncode, time.monotonic() - t0)
-        if time.monotonic() >= deadline:
+        if len(ended) == len(procs) or time.monotonic() >= deadline:
             break
-        time.sleep(1)
+        time.sleep(0.2)
     for label, (p, t0) in procs.items():
         if label not in ended:  # mid-epoch: its last.ckpt (written atomically) holds the epoch before
             os.killpg(p.pid, 9)
