@@ -478,3 +478,18 @@ def test_bf16_moments_load_back_as_fp32():
     again.load_state_dict(light)
     assert again.state[param]["exp_avg"].dtype == torch.float32  # torch casts to the parameter's dtype
     assert torch.equal(again.state[param]["exp_avg"], adam.state[param]["exp_avg"].bfloat16().float())
+
+
+def test_a_finished_runs_checkpoint_is_found_relative_to_its_folder_or_the_working_directory(tmp_path, monkeypatch):
+    from types import SimpleNamespace
+
+    carry = load_script("gpu_carry")
+    monkeypatch.chdir(tmp_path)
+    folder = Path("runs") / "lstmnet-state"  # `vitfly reproduce --out runs`: done.json names runs/.../last.ckpt
+    (folder / "checkpoints").mkdir(parents=True)
+    (folder / "checkpoints" / "last.ckpt").write_bytes(b"")
+    run = SimpleNamespace(folder=folder)
+    (folder / "done.json").write_text(json.dumps({"checkpoint": str(folder / "checkpoints" / "last.ckpt")}))
+    assert carry.flown_checkpoint(None, run) == folder / "checkpoints" / "last.ckpt"
+    (folder / "done.json").write_text(json.dumps({"checkpoint": "checkpoints/last.ckpt"}))  # as carried runs say
+    assert carry.flown_checkpoint(None, run) == folder / "checkpoints" / "last.ckpt"
