@@ -97,8 +97,8 @@ def flown_checkpoint(cfg, r) -> Path | None:
     if done.exists():
         path = Path(json.loads(done.read_text())["checkpoint"])
         # relative: to the run folder as carried runs write it, or to the working directory as `vitfly reproduce`
-        # with a relative output directory writes it
-        return path if path.is_absolute() or not (r.folder / path).exists() and path.exists() else r.folder / path
+        # with a relative output directory writes it (an absolute path stays itself)
+        return next((p for p in (r.folder / path, path) if p.exists()), r.folder / path)
     best = r.folder / "checkpoints" / "best.ckpt"
     flies_best = train_stage(cfg, r.run.model, r.run.use_state, seed=r.run.seed).select == "best"
     return best if flies_best and best.exists() else None
