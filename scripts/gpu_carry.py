@@ -91,7 +91,7 @@ def lean_last(run: Path, moments: str) -> dict:
 def flown_checkpoint(cfg, r) -> Path | None:
     """The checkpoint a finished run flies (done.json's), or an unfinished run's best so far where the preset
     flies the best epoch (None: nothing to keep)."""
-    from vitfly.workflows.reproduce_config import train_stage
+    from scripts.gpu_preset import flies_best
 
     done = r.folder / "done.json"
     if done.exists():
@@ -100,8 +100,7 @@ def flown_checkpoint(cfg, r) -> Path | None:
         # with a relative output directory writes it (an absolute path stays itself)
         return next((p for p in (r.folder / path, path) if p.exists()), r.folder / path)
     best = r.folder / "checkpoints" / "best.ckpt"
-    flies_best = train_stage(cfg, r.run.model, r.run.use_state, seed=r.run.seed).select == "best"
-    return best if flies_best and best.exists() else None
+    return best if flies_best(cfg, r.run) and best.exists() else None
 
 
 def cpu_marker(cfg, r) -> dict:

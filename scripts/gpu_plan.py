@@ -85,10 +85,9 @@ def max_epochs(cfg, run) -> int:
 def state_bytes(cfg, run, moments: str) -> int:
     """The carried resume state of ``run``, estimated from its network's parameter count: last.* and, where the
     preset flies the best epoch (``select: best``), best.* in fp16 (``scripts/gpu_carry.py``)."""
-    from vitfly.workflows.reproduce_config import train_stage
+    from scripts.gpu_preset import flies_best
 
-    best = train_stage(cfg, run.model, run.use_state, seed=run.seed).select == "best"
-    return parameters(cfg, run) * (STATE_BYTES_PER_PARAM[moments] + 2 * best) + FOLDER_BYTES
+    return parameters(cfg, run) * (STATE_BYTES_PER_PARAM[moments] + 2 * flies_best(cfg, run)) + FOLDER_BYTES
 
 
 def epochs_per_slot(marker: dict, train_s: float) -> int | None:

@@ -28,6 +28,14 @@ def run_dir(cfg, label: str) -> Path:
     return cfg.train_dir(*parse_label(label))
 
 
+def flies_best(cfg, run) -> bool:
+    """Whether the preset flies ``run``'s best epoch (``select: best``), so that a best.ckpt travels with it;
+    with ``select: last`` (the paper arm) no run ever has one."""
+    from vitfly.workflows.reproduce_config import train_stage
+
+    return train_stage(cfg, run.model, run.use_state, seed=run.seed).select == "best"
+
+
 def local_data_hash(cfg) -> str:
     from vitfly.datamodules.provenance import dataset_fingerprint
 

@@ -60,7 +60,7 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
-from scripts.gpu_preset import load_cfg, local_data_hash, parse_label, run_dir  # noqa: E402
+from scripts.gpu_preset import flies_best, load_cfg, local_data_hash, parse_label, run_dir  # noqa: E402
 
 SLOT_ENDED_RC = 3  # train-one's exit status when the slot ended before the run did
 SLOT_EPOCHS = "slot_epochs.json"  # train-one's measured epoch lengths (s) this slot; not carried home
@@ -425,10 +425,10 @@ def extract_returned(src: Path, tmp: Path) -> None:
 
 def keep_best_at_home(run: Path, dst: Path) -> None:
     """A run carried lean (``scripts/gpu.py carry``) comes back without best.ckpt when no epoch of the slot beat
-    the best one here: that one moves into the returned folder."""
-    best = run / "checkpoints" / "best.ckpt"
-    if not best.exists():
-        shutil.move(str(dst / "checkpoints" / "best.ckpt"), best)
+    the best one here: that one moves into the returned folder (a preset that flies the last epoch has none)."""
+    best, home = run / "checkpoints" / "best.ckpt", dst / "checkpoints" / "best.ckpt"
+    if not best.exists() and home.exists():
+        shutil.move(str(home), best)
 
 
 def place_finished(run: Path, dst: Path) -> None:
@@ -484,12 +484,12 @@ def checked_runs(tmp: Path, src: Path, cfg, local: str) -> list[Path]:
 
     runs = sorted(p for p in tmp.iterdir() if p.is_dir())
     for run in runs:
-        parse_label(run.name)
+        label = parse_label(run.name)
         if returned_hash(run) != local:
             raise SystemExit(f"{src}: {run.name} was trained on dataset_hash {returned_hash(run)}; the local "
                              f"{cfg.data} has {local}; nothing unpacked")
         home = run_dir(cfg, run.name) / "checkpoints" / "best.ckpt"
-        if not (run / "checkpoints" / "best.ckpt").exists() and not home.exists():
+        if flies_best(cfg, label) and not (run / "checkpoints" / "best.ckpt").exists() and not home.exists():
             raise SystemExit(f"{src}: {run.name} came back without best.ckpt (its best epoch is the one at home, "
                              f"carried lean), but {home} is missing; nothing unpacked")
     return runs
