@@ -173,6 +173,34 @@ def test_an_epoch_has_at_most_one_shape_per_bucket(dataset_path, tmp_path, resid
     assert len(unbucketed.frame_counts) > len(recorded.frame_counts)
 
 
+def validation_metrics(path, root, name, **data_kwargs) -> tuple[dict[str, float], int]:
+    """(the validation metrics, the number of validation batches) of one fixed network, 5 held-out trajectories."""
+    torch.manual_seed(0)
+    module = create_policy(name, static_shapes=bool(data_kwargs.get("time_bucket_steps")))
+    dm = TrajectoryDataModule(path, batch_size=1, val_fraction=0.5, resident=False, **data_kwargs)
+    trainer = quiet_trainer(root, 1)
+    [metrics] = trainer.validate(module, datamodule=dm, verbose=False)
+    return metrics, trainer.num_val_batches[0]
+
+
+@pytest.mark.parametrize("name", ["lstmnet", "vit_lstm"])  # recurrent, with batch norms and with layer norms
+def test_validation_batches_of_many_trajectories_score_as_one_at_a_time(dataset_path, tmp_path, name):
+    """``val_batch_size``: the paper's one-trajectory steps validated 4 trajectories a call (padded rows and
+    steps, bucketed or not) give the metrics of validating them one by one, in fewer calls."""
+    one, calls_one = validation_metrics(dataset_path, tmp_path / "a", name)
+    assert calls_one == 5 and set(one) == {"val/loss", "val/cosine", "val/r2_lateral", "val/r2_vertical"}
+    for kwargs in ({"val_batch_size": 4}, {"val_batch_size": 4, "time_bucket_steps": 16}):
+        many, calls = validation_metrics(dataset_path, tmp_path / "b", name, **kwargs)
+        assert calls == 2  # ceil(5 / 4)
+        for key, value in one.items():
+            torch.testing.assert_close(many[key], value, rtol=1e-5, atol=1e-6, msg=key)
+
+
+def test_a_validation_batch_size_below_one_is_one_error(dataset_path):
+    with pytest.raises(VitflyError, match="val_batch_size: expected a positive number of trajectories, got 0"):
+        TrajectoryDataModule(dataset_path, val_batch_size=0)
+
+
 def test_chunks_of_a_bucket_multiple_share_one_shape(dataset_path, tmp_path):
     recorded = shapes_of_one_epoch(dataset_path, tmp_path, bucket=8, tbptt_steps=8)
     assert recorded.train_frame_counts == {3 * 8}  # every training step: 3 rows x 8 steps

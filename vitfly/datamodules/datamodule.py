@@ -154,7 +154,12 @@ class TrajectoryDataModule(L.LightningDataModule):
 
     Args:
         data_path: HDF5 dataset (schema v1) to train and validate on.
-        batch_size: trajectories (or windows) per batch.
+        batch_size: trajectories (or windows) per training batch (one optimiser step's).
+        val_batch_size: trajectories (or windows) per validation batch (None: ``batch_size``). Validation takes
+            no optimiser step, so its metrics are those of one-trajectory batches (masked means over the
+            valid steps; padding at the end of a row never reaches a causal network's valid outputs) in fewer
+            calls: with the paper's one-trajectory steps, validating ViT+LSTM one trajectory at a time took 60 %
+            of an epoch on a GPU (docs/training.md#the-two-training-arms).
         val_fraction: share of trajectories held out for validation (split by trajectory) when a split is drawn.
         split_seed: seed of the split (and of the batch order).
         split_file: reuse the split recorded in an earlier run's split.json instead of drawing one. Without it, a
@@ -185,10 +190,11 @@ class TrajectoryDataModule(L.LightningDataModule):
             most half its free memory; ``true``: on any device (on the CPU: no HDF5 reads, no loader
             workers after the first load); ``false``: stream from the file.
         time_bucket_steps: pad each training and validation batch's time axis with masked steps up to a
-            multiple of this many steps, and a smaller last batch up to ``batch_size`` rows (None: batches
-            are as long as their longest trajectory). With the policy's ``static_shapes`` an epoch then
-            has at most (longest trajectory / ``time_bucket_steps``, rounded up) batch shapes, each compiled
-            or recorded as a CUDA graph once; padding is masked, so the loss and gradients do not change.
+            multiple of this many steps, and a smaller last batch up to ``batch_size`` rows (validation:
+            ``val_batch_size``; None: batches are as long as their longest trajectory). With the policy's
+            ``static_shapes`` an epoch then has at most (longest trajectory / ``time_bucket_steps``, rounded up)
+            batch shapes, each compiled or recorded as a CUDA graph once; padding is masked, so the loss and
+            gradients do not change.
             Choose a multiple of ``tbptt_steps`` when chunks are used (every chunk then has one shape).
     """
 
@@ -212,16 +218,20 @@ class TrajectoryDataModule(L.LightningDataModule):
         sensor: dict[str, Any] | None = None,
         resident: bool | str = "auto",
         time_bucket_steps: int | None = None,
+        val_batch_size: int | None = None,
     ):
         super().__init__()
         if resident not in (True, False, "auto"):
             raise VitflyError(f"resident: expected true, false or auto, got {resident!r}")
-        if batch_size < 1:
-            raise VitflyError(f"batch_size: expected a positive number of trajectories, got {batch_size}")
+        sizes = {"batch_size": batch_size, "val_batch_size": 1 if val_batch_size is None else val_batch_size}
+        for name, size in sizes.items():
+            if size < 1:
+                raise VitflyError(f"{name}: expected a positive number of trajectories, got {size}")
         self.time_bucket_steps = check_time_bucket(time_bucket_steps)
         self.save_hyperparameters()
         self.data_path = data_path
         self.batch_size = batch_size
+        self.val_batch_size = val_batch_size or batch_size
         self.val_fraction = val_fraction
         self.split_seed = split_seed
         self.split_file = split_file
@@ -366,12 +376,12 @@ class TrajectoryDataModule(L.LightningDataModule):
         shard = trainer.distributed_sampler_kwargs if trainer is not None else None
         return {"num_replicas": shard["num_replicas"], "rank": shard["rank"]} if shard else {}
 
-    def _loader(self, dataset: TrajectoryDataset, shuffle: bool) -> DataLoader:
+    def _loader(self, dataset: TrajectoryDataset, shuffle: bool, batch_size: int | None = None) -> DataLoader:
         # under DDP the batch sampler shards itself (Lightning's DistributedSampler cannot be injected into it:
         # vitfly's Trainers run with use_distributed_sampler=False)
         sampler = LengthBucketBatchSampler(
             dataset.window_lengths(),
-            self.batch_size,
+            batch_size or self.batch_size,
             shuffle,
             self.split_seed,
             prefetch=dataset.prefetch if self.readahead else None,
@@ -402,7 +412,8 @@ class TrajectoryDataModule(L.LightningDataModule):
             batch = self.sensor_randomisation()(batch, self.split_seed, trainer.current_epoch)
         fitting = trainer is not None and (trainer.training or trainer.validating or trainer.sanity_checking)
         if self.time_bucket_steps and fitting:  # test/predict rows stay one per trajectory
-            batch = pad_to_bucket(batch, self.time_bucket_steps, self.batch_size)
+            rows = self.batch_size if trainer.training else self.val_batch_size
+            batch = pad_to_bucket(batch, self.time_bucket_steps, rows)
         return depth_to_unit_float(batch)
 
     def sensor_randomisation(self) -> SensorRandomisation:
@@ -434,8 +445,8 @@ class TrajectoryDataModule(L.LightningDataModule):
             self._resident = ResidentTrajectories(self.data_path, device)
         return self._resident
 
-    def _train_val_loader(self, dataset: TrajectoryDataset, shuffle: bool) -> DataLoader:
-        loader = self._loader(dataset, shuffle)
+    def _train_val_loader(self, dataset: TrajectoryDataset, shuffle: bool, batch_size: int) -> DataLoader:
+        loader = self._loader(dataset, shuffle, batch_size)
         if not self.use_resident():
             return loader
         # the same batches (same sampler) as indices only; nothing to read ahead from the file
@@ -446,12 +457,12 @@ class TrajectoryDataModule(L.LightningDataModule):
 
     def train_dataloader(self) -> DataLoader:
         self._save_split_once()
-        return self._train_val_loader(self._datasets["train"], shuffle=True)
+        return self._train_val_loader(self._datasets["train"], shuffle=True, batch_size=self.batch_size)
 
     def val_dataloader(self) -> DataLoader | list:
         self._save_split_once()
         val = self._datasets.get("val")
-        return [] if val is None else self._train_val_loader(val, shuffle=False)
+        return [] if val is None else self._train_val_loader(val, shuffle=False, batch_size=self.val_batch_size)
 
     def test_dataloader(self) -> DataLoader:
         self._save_split_once()
