@@ -112,6 +112,32 @@ def test_select_last_hands_on_the_final_epoch_and_keeps_no_best(data_path, tmp_p
     assert not (tmp_path / "other").exists()  # refused before anything is written
 
 
+class SlowValidation(Callback):
+    """Every validation batch of a fit takes ``sleep_s`` longer (the sanity check's too)."""
+
+    def __init__(self, sleep_s: float) -> None:
+        self.sleep_s, self.batches = sleep_s, 0
+
+    def on_validation_batch_end(self, trainer, *args, **kwargs) -> None:
+        time.sleep(self.sleep_s)
+        self.batches += not trainer.sanity_checking
+
+
+def test_every_epoch_says_how_long_it_trained_and_validated(data_path, tmp_path):
+    """metrics.csv's ``time/val_s``: the seconds of the epoch's validation loop (here at least the 0.3 s slept
+    in each of its batches; the sanity check's not counted); ``time/train_s``: the rest of the epoch."""
+    slow = SlowValidation(0.3)
+    started = time.monotonic()
+    train_policy(data_path, "convnet", tmp_path / "run", max_epochs=2, callbacks=[slow], **FROZEN)
+    wall_s = time.monotonic() - started
+    val_s = {e: float(v) for e, v in epoch_column(tmp_path / "run" / "metrics.csv", "time/val_s").items()}
+    train_s = {e: float(v) for e, v in epoch_column(tmp_path / "run" / "metrics.csv", "time/train_s").items()}
+    assert sorted(val_s) == sorted(train_s) == [0, 1] and slow.batches == 2  # one validation batch an epoch
+    for epoch in (0, 1):
+        assert 0.3 <= val_s[epoch] < 0.3 + 5.0 and 0 < train_s[epoch]
+    assert sum(val_s.values()) + sum(train_s.values()) < wall_s - 0.3  # the sanity check's sleep is outside
+
+
 @pytest.mark.parametrize(
     "trainer_kwargs, sleep_s",
     [({"max_steps": 6}, 0.0), ({"max_time": {"seconds": 2}}, 0.8)],

@@ -35,6 +35,7 @@ from lightning.pytorch.cli import LightningArgumentParser, LightningCLI
 from vitfly.datamodules.datamodule import TrajectoryDataModule
 from vitfly.packaged import find_config
 from vitfly.training.checkpoints import LastCheckpoint
+from vitfly.training.epoch_times import EpochTimes
 from vitfly.training.fit import checkpoint_defaults, default_wandb_offline, finish_wandb
 from vitfly.training.precision import usable_precision
 from vitfly.zoo.checkpoint import network_hparams
@@ -136,6 +137,8 @@ class VitflyCLI(LightningCLI):
             # last.ckpt beside best.ckpt (a --checkpoint.dirpath moves both); it runs after the best one
             best = next((cb for cb in callbacks if isinstance(cb, ModelCheckpoint)), None)
             callbacks = [*callbacks, LastCheckpoint(best.dirpath if best is not None else None)]
+        if not any(isinstance(cb, EpochTimes) for cb in [*listed, *callbacks]):
+            callbacks = [*callbacks, EpochTimes()]  # time/train_s and time/val_s per epoch in metrics.csv
         callbacks = [*callbacks, *getattr(self, "precision_notes", [])]
         has_bar = any(isinstance(cb, ProgressBar) for cb in [*listed, *callbacks])
         if config.get("enable_progress_bar", True) is not False and not has_bar:

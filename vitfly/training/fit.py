@@ -91,6 +91,7 @@ def train_policy(
 
     from vitfly.datamodules.datamodule import TrajectoryDataModule
     from vitfly.training.checkpoints import LastCheckpoint, RngState
+    from vitfly.training.epoch_times import EpochTimes
     from vitfly.training.precision import trainer_precision
     from vitfly.zoo.policy import create_policy
 
@@ -114,7 +115,7 @@ def train_policy(
     bar = [RichProgressBar()] if progress_bar else []
     trainer_kwargs, notes = trainer_precision(trainer_kwargs or {}, f"train {model}")  # bf16 only where it pays
     # RngState: a resumed run draws the dropout masks the uninterrupted one would have drawn
-    callbacks = [*([checkpoint] if checkpoint else []), LastCheckpoint(ckpt_dir), RngState(), *bar,
+    callbacks = [*([checkpoint] if checkpoint else []), LastCheckpoint(ckpt_dir), RngState(), EpochTimes(), *bar,
                  *(callbacks or []), *notes]
     trainer = L.Trainer(
         max_epochs=max_epochs,
