@@ -137,7 +137,18 @@ def assert_same_training(a: Path, b: Path) -> None:
             assert value.dtype == adam_b[i][key].dtype and torch.equal(value, adam_b[i][key]), (i, key)
 
 
-def test_a_run_stopped_in_one_slot_resumes_in_the_next_exactly(tmp_path, data, two_epochs, capsys):
+@pytest.fixture
+def code_tree(monkeypatch):
+    """The slot plans count the working tree a device call sends: here the code's alone, without the runs this
+    repository's carry/ holds at the moment (they come and go with the study; the plans under test carry their
+    own runs from tmp_path)."""
+    slots = load_script("gpu_slots")
+    real = slots.travelling_bytes
+    monkeypatch.setattr(slots, "travelling_bytes",
+                        lambda root, leave_out=None: real(root, leave_out) - slots.tree_bytes(REPO / "carry"))
+
+
+def test_a_run_stopped_in_one_slot_resumes_in_the_next_exactly(tmp_path, data, two_epochs, capsys, code_tree):
     gpu = load_script("gpu")
     common = ["--config", str(two_epochs), "--preset", "tiny", "--data", str(data)]
     slot = ["--work", str(tmp_path / "work"), "--collect-workers", "1", "--threads", "1"]
@@ -172,8 +183,8 @@ def test_a_run_stopped_in_one_slot_resumes_in_the_next_exactly(tmp_path, data, t
     assert "vit_lstm-state   unfinished: 1/2 epochs" in listing and "convnet-state    not started" in listing
     assert "about 1 more slot of" in listing
     # ViT+LSTM's lean state with bf16 moments and its best epoch in fp16 (the tiny preset flies the best epoch):
-    # 3,563,663 x 10 + 196,608 bytes = 34.2 MiB, more than the working tree (this repository's, carry/ of the
-    # other presets included) leaves of 64 MiB
+    # 3,563,663 x 10 + 196,608 bytes = 34.2 MiB, more than the working tree (this repository's code, without the
+    # runs its carry/ holds: code_tree) leaves of 64 MiB
     assert re.search(r"next slot carries 0 unfinished runs, 0\.0 MiB of the \d+\.\d MiB a call leaves", listing)
     assert "vit_lstm-state wait for a later slot (no room)" in listing
 
@@ -277,7 +288,7 @@ def stop_after_one_epoch(cfg, label: str, data: Path, train_dir: Path) -> None:
         stage_train(stage, data, train_dir, 1, progress=False, callbacks=[*callbacks, slots.SlotStop(None, 1)])
 
 
-def test_runs_outlive_the_session_in_the_carry(tmp_path, data, two_epochs, capsys):
+def test_runs_outlive_the_session_in_the_carry(tmp_path, data, two_epochs, capsys, code_tree):
     """A new checkout has no runs/: ``carry`` keeps every run that trained here in carry/<preset>/ as safetensors
     and JSON (no pickle), ``restore`` puts them back, and they go on: one stopped by a slot resumes on the GPU
     machine, one started by ``vitfly reproduce`` resumes here and ends bit for bit where an uninterrupted run
@@ -371,6 +382,25 @@ def test_runs_outlive_the_session_in_the_carry(tmp_path, data, two_epochs, capsy
         gpu.main(["restore", "--config", str(two_epochs), "--preset", "tiny", "--data", str(other), "--run-dir",
                   str(tmp_path / "fourth"), "--carry-dir", str(carry)])
     assert not (tmp_path / "fourth" / "train").exists()
+
+
+def test_a_preset_that_flies_the_last_epoch_comes_home_without_a_best_checkpoint(tmp_path, data, two_epochs, capsys):
+    """``select: last`` (the paper preset): a slot's run keeps no best.ckpt, there or here; unpacking places it
+    all the same (it was refused once, for want of a best epoch to keep at home)."""
+    config = yaml.safe_load(two_epochs.read_text())
+    config["presets"]["tiny"]["train"]["overrides"]["select"] = "last"
+    last_only = tmp_path / "reproduce.yaml"
+    last_only.write_text(yaml.safe_dump(config))
+    gpu = load_script("gpu")
+    common = ["--config", str(last_only), "--preset", "tiny", "--data", str(data)]
+    assert gpu.main(["train", *common, "--run-dir", str(tmp_path / "gpu"), "--out", str(tmp_path / "back"),
+                     "--work", str(tmp_path / "work"), "--collect-workers", "1", "--threads", "1",
+                     "--runs", "convnet-state", "--stop-after-epochs", "1"]) == 0
+    capsys.readouterr()
+    assert gpu.main(["unpack", *common, "--run-dir", str(tmp_path / "home"), str(tmp_path / "back")]) == 0
+    assert "unfinished, 1/2 epochs" in capsys.readouterr().out
+    run = tmp_path / "home" / "train" / "convnet-state"
+    assert sorted(p.name for p in (run / "checkpoints").iterdir()) == ["last.ckpt"]
 
 
 def test_a_run_folder_belongs_to_the_data_it_was_trained_on(tmp_path, data, capsys):
