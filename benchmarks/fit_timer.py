@@ -2,7 +2,8 @@
 
 Given to ``vitfly fit`` as ``--trainer.callbacks+=fit_timer.FitTimer`` (this folder on PYTHONPATH), so
 the same file times today's code and an older revision alike. Writes, at the end of fit, a JSON list of
-``[seconds since fit start at batch end, valid frames in the batch]`` to $VITFLY_FIT_TIMER_OUT.
+``[seconds since fit start at batch end, valid frames in the batch]`` to $VITFLY_FIT_TIMER_OUT (when set;
+``train_speed.py``'s loop mode reads ``batches`` in its own process).
 """
 
 from __future__ import annotations
@@ -26,5 +27,7 @@ class FitTimer(Callback):
         self.batches.append([time.perf_counter() - self.start, int(batch["mask"].sum())])
 
     def on_fit_end(self, trainer, pl_module) -> None:
-        with open(os.environ["VITFLY_FIT_TIMER_OUT"], "w") as f:
-            json.dump(self.batches, f)
+        out = os.environ.get("VITFLY_FIT_TIMER_OUT")  # in-process callers read ``batches`` instead
+        if out:
+            with open(out, "w") as f:
+                json.dump(self.batches, f)

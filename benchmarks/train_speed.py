@@ -17,8 +17,12 @@ Two measurements, each run in a fresh subprocess per sample so that both revisio
   graphs; ``paper_vitfly``: 64 trajectories in TBPTT chunks, compiled), on a synthetic batch of
   ``--steps`` real steps per trajectory (default 418, the mean flight of the laptop preset's data). In
   ``--modes``: ``recipe`` (the preset as it is), ``eager`` (no compilation), ``unpadded`` (no compilation,
-  no padding, no static shapes: the default path), ``fp32`` / ``bf16`` (the recipe in that precision).
-  Frames/s count real frames (not padding).
+  no padding, no static shapes: the default path), ``fp32`` / ``bf16`` (the recipe in that precision),
+  ``loop`` (the run as the preset trains it, on ``--data``: its TrainStage through ``vitfly.training.train_policy``,
+  Lightning, the real flights, the learning-rate schedule and the logging, for ``--fit-batches`` training
+  batches after ``--fit-skip`` ones; the step modes time the step alone, so ``recipe`` against ``loop`` in one
+  run says what the loop around the step costs; the loop also validates ``--val-batches`` batches, and the
+  progress line and ``--json`` give their seconds). Frames/s count real frames (not padding).
 
 Every step-mode row also gives the model's arithmetic rate: FLOPs per frame of one optimiser step (forward
 and backward) from ``torch.utils.flop_counter.FlopCounterMode``, counted once per model on the CPU in fp32 on
@@ -37,6 +41,8 @@ On a shared machine every number moves with the other load: compare only numbers
     .venv/bin/python benchmarks/train_speed.py --fit --data data/speed40.h5 --models vit_lstm --baseline-rev 08f93e2
     .venv/bin/python benchmarks/train_speed.py --arm paper --modes recipe eager unpadded --iters 20 --warmup 5
     .venv/bin/python benchmarks/train_speed.py --arm vitfly --models convnet vit_lstm --batch 2 --steps 64  # CPU-sized
+    python3 benchmarks/train_speed.py --arm paper --models vit_lstm --modes recipe loop --data data/reproduce_paper.h5 \
+        --fit-batches 60 --fit-skip 20 --val-batches 4     # the step against the run that trains it
 """
 
 from __future__ import annotations
@@ -59,7 +65,7 @@ BENCH_DIR = Path(__file__).resolve().parent
 MODES = ("fp32", "bf16", "compiled", "compiled-bf16")
 ALL_MODELS = ("convnet", "lstmnet", "unet_lstm", "vit", "vit_lstm", "resnet18")
 ARMS = {"paper": "paper", "vitfly": "paper_vitfly"}  # --arm -> its preset in configs/reproduce.yaml
-ARM_MODES = ("recipe", "eager", "unpadded", "fp32", "bf16")
+ARM_MODES = ("recipe", "eager", "unpadded", "fp32", "bf16", "loop")
 MEAN_FLIGHT_STEPS = 418  # the laptop preset's 200 expert flights: 83,681 frames
 FLOP_COUNT_STEPS = 32  # frames of the trajectory the FLOPs are counted on
 # NVIDIA datasheet figures, TFLOP/s: FP32 (CUDA cores, dense), TF32 and BF16 tensor cores as printed "with
@@ -194,6 +200,41 @@ def measure_arm(
             "cudagraph_skips": int(counters["inductor"]["cudagraph_skips"])}
 
 
+def measure_loop(model: str, arm: str, data: str, batches: int, skip: int, val_batches: int, device: str) -> dict:
+    """frames/s (real frames) of ``arm``'s run of ``model`` as it trains: the preset's TrainStage through
+    ``train_policy`` for one epoch cut to ``batches`` training batches, over those after the first ``skip``
+    (start-up, compilation and CUDA-graph recording); with ``val_batches`` validation batches, timed by the
+    run's own ``time/val_s``."""
+    import csv
+
+    from fit_timer import FitTimer
+    from torch._dynamo.utils import counters
+
+    from vitfly.training import train_policy
+    from vitfly.workflows.reproduce_config import load_reproduce_config, split_callbacks, train_stage
+
+    stage, _ = split_callbacks(train_stage(load_reproduce_config(ROOT / "configs" / "reproduce.yaml", ARMS[arm]),
+                                           model, True))
+    trainer_kwargs = {**stage.trainer_kwargs, "accelerator": "gpu" if device.startswith("cuda") else "cpu",
+                      "devices": 1, "limit_train_batches": batches, "limit_val_batches": val_batches,
+                      "num_sanity_val_steps": 0, "max_time": None}
+    timer = FitTimer()
+    with tempfile.TemporaryDirectory() as out:
+        train_policy(data, model, out, max_epochs=1, batch_size=stage.batch_size, val_fraction=stage.val_fraction,
+                     seed=stage.seed, policy_kwargs=stage.policy_kwargs, data_kwargs=stage.data_kwargs,
+                     trainer_kwargs=trainer_kwargs, progress_bar=False, callbacks=[timer], select="last")
+        with open(Path(out) / "metrics.csv") as f:
+            val_s = next(float(r["time/val_s"]) for r in csv.DictReader(f) if r.get("time/val_s"))
+    rows = timer.batches
+    if len(rows) <= skip:
+        raise RuntimeError(f"only {len(rows)} training batches ran; need more than --fit-skip {skip}")
+    t0 = rows[skip - 1][0] if skip else 0.0
+    frames = sum(n for _, n in rows[skip:])
+    return {"fps": frames / (rows[-1][0] - t0), "warmup_s": t0, "padded": [stage.batch_size, "flights"],
+            "val_s": val_s, "graphs": int(counters["stats"]["unique_graphs"]),
+            "cudagraph_skips": int(counters["inductor"]["cudagraph_skips"])}
+
+
 def profile_table(one_batch, dev, batches: int = 3, rows: int = 30) -> str:
     """``torch.profiler``'s operator table over ``batches`` calls of ``one_batch``, sorted by device time (CPU
     time off CUDA): the launch-bound share shows as CPU time far above the kernels' time."""
@@ -232,7 +273,7 @@ def measure_fit(model: str, root: str, data: str, batches: int, skip: int) -> di
 def worker_main(argv: list[str]) -> None:
     spec = json.loads(argv[0])
     kind = spec.pop("kind")
-    measure = {"step": measure_steps, "arm": measure_arm, "fit": measure_fit}[kind]
+    measure = {"step": measure_steps, "arm": measure_arm, "fit": measure_fit, "loop": measure_loop}[kind]
     result = measure(**spec)
     print("RESULT " + json.dumps(result), flush=True)
 
@@ -374,6 +415,7 @@ def main() -> None:
     parser.add_argument("--data", help="dataset for --fit")
     parser.add_argument("--fit-batches", type=int, default=4, help="training batches per --fit sample")
     parser.add_argument("--fit-skip", type=int, default=1, help="first batches left out of the --fit rate")
+    parser.add_argument("--val-batches", type=int, default=0, help="--arm's loop mode: validation batches timed")
     parser.add_argument("--baseline-rev", help="git revision to measure side by side (e.g. 08f93e2)")
     parser.add_argument("--repeats", type=int, default=1, help="samples per model/mode (alternating revisions)")
     parser.add_argument("--peak-tflops", type=float, default=None,
@@ -382,8 +424,8 @@ def main() -> None:
     parser.add_argument("--json", help="also write every sample to this JSON file")
     parser.add_argument("--profile", help="--arm: also append each sample's torch.profiler table to this file")
     args = parser.parse_args()
-    if args.fit and not args.data:
-        parser.error("--fit needs --data (a vitfly HDF5 dataset)")
+    if (args.fit or "loop" in (args.modes or [])) and not args.data:
+        parser.error("--fit and the loop mode need --data (a vitfly HDF5 dataset)")
     if args.arm and (args.fit or args.baseline_rev):
         parser.error("--arm times optimiser steps of this revision; it takes neither --fit nor --baseline-rev")
     choices = ARM_MODES if args.arm else MODES
@@ -414,6 +456,10 @@ def main() -> None:
                         if args.fit:
                             spec = {"kind": "fit", "model": model, "root": str(sides[side]), "data": data,
                                     "batches": args.fit_batches, "skip": args.fit_skip}  # fmt: skip
+                        elif mode == "loop":
+                            spec = {"kind": "loop", "model": model, "arm": args.arm, "data": data,
+                                    "batches": args.fit_batches, "skip": args.fit_skip,
+                                    "val_batches": args.val_batches, "device": device}  # fmt: skip
                         elif args.arm:
                             arm = settings[(model, mode)]
                             spec = {"kind": "arm", "model": model, "policy_kwargs": arm["policy_kwargs"],
@@ -432,6 +478,7 @@ def main() -> None:
                         samples.append({"repeat": r, "model": model, "mode": mode, "side": side, **result})
                         graphs = (f", {result['graphs']} graphs, {result['cudagraph_skips']} CUDA-graph skips"
                                   if "graphs" in result else "")
+                        graphs += f", validation {result['val_s']:.2f} s" if "val_s" in result else ""
                         print(f"  [{r}] {model} {mode} {side}: {result['fps']:,.1f} frames/s "
                               f"(warm-up {result['warmup_s']:.1f} s{graphs})", file=sys.stderr, flush=True)  # fmt: skip
                         if args.json:  # what finished survives a timeout

@@ -67,3 +67,18 @@ def test_the_profile_names_where_a_step_goes(bench):
     table = bench.profile_table(lambda: (a @ b) @ c, torch.device("cpu"))
     row = next(line for line in table.splitlines() if line.strip().startswith("aten::mm"))
     assert row.split()[-1] == "6"  # "# of Calls", the table's last column
+
+
+def test_the_loop_mode_trains_the_presets_run_on_real_flights(bench, monkeypatch, tmp_path):
+    """``--modes loop``: the paper preset's ConvNet run (one flight a step) through ``train_policy`` on a small
+    dataset, 4 training batches of which the first is left out, 1 validation batch timed by the run."""
+    from test_datamodule import write_dataset
+
+    monkeypatch.syspath_prepend(str(REPO / "benchmarks"))  # the worker's path: fit_timer beside the script
+    lengths = [12, 9, 15, 7, 11, 14, 8, 10]
+    data = write_dataset(tmp_path / "d.h5", lengths)
+    result = bench.measure_loop("convnet", "paper", data, batches=4, skip=1, val_batches=1, device="cpu")
+    assert result["padded"] == [1, "flights"] and result["graphs"] == 0  # one flight a step; eager on a CPU
+    assert result["fps"] > 0 and result["warmup_s"] > 0 and result["val_s"] > 0
+    with pytest.raises(RuntimeError, match="only 4 training batches ran; need more than --fit-skip 4"):
+        bench.measure_loop("convnet", "paper", data, batches=4, skip=4, val_batches=0, device="cpu")
