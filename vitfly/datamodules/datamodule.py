@@ -159,7 +159,7 @@ class TrajectoryDataModule(L.LightningDataModule):
             no optimiser step, so its metrics are those of one-trajectory batches (masked means over the
             valid steps; padding at the end of a row never reaches a causal network's valid outputs) in fewer
             calls: with the paper's one-trajectory steps, validating ViT+LSTM one trajectory at a time took 60 %
-            of an epoch on a GPU (docs/training.md#the-two-training-arms).
+            of an epoch on a GPU (docs/training.md#validation-batches-and-where-an-epochs-time-goes).
         val_fraction: share of trajectories held out for validation (split by trajectory) when a split is drawn.
         split_seed: seed of the split (and of the batch order).
         split_file: reuse the split recorded in an earlier run's split.json instead of drawing one. Without it, a
