@@ -180,6 +180,25 @@ def test_lstm_inference_matches_nn_lstm(bias):
     torch.testing.assert_close(c, ref_c, atol=1e-6, rtol=0)
 
 
+def test_long_sequences_at_inference_take_the_fused_lstm_on_a_gpu(monkeypatch):
+    """Eval and no autograd: a GPU runs sequences of more than one step through ``nn.LSTM`` (the step-by-step
+    ops launched ~9,000 kernels for one validation trajectory of ViT+LSTM), a control tick's single step and
+    every CPU call through ``lstm_inference``. The fused branch, forced here on the CPU, gives nn.LSTM's result."""
+    from vitfly.zoo import recurrent
+
+    assert recurrent.fused_at_inference("cuda", 418) and recurrent.fused_at_inference("cuda", 2)
+    assert not recurrent.fused_at_inference("cuda", 1) and not recurrent.fused_at_inference("cpu", 418)
+    torch.manual_seed(3)
+    lstm = nn.LSTM(11, 9, num_layers=3, batch_first=True).eval()
+    x = torch.randn(2, 7, 11)
+    with torch.no_grad():
+        reference, _ = lstm(x)
+        monkeypatch.setattr(recurrent, "fused_at_inference", lambda device_type, steps: steps > 1)
+        monkeypatch.setattr(recurrent, "lstm_inference", lambda *args, **kwargs: pytest.fail("step by step"))
+        out, _ = run_lstm(lstm, x, None)
+    torch.testing.assert_close(out, reference, atol=1e-6, rtol=0)
+
+
 def test_an_lstm_trains_under_cpu_bf16_autocast():
     """torch 2.15's oneDNN LSTM refuses bf16 on CPUs without AVX512-BF16 ("could not create a primitive
     descriptor"; an AVX2-only AMD EPYC): under CPU autocast the recurrence runs in fp32, so it trains, and gives

@@ -2,7 +2,11 @@
 
 ``run_lstm`` is ``nn.LSTM`` for training and export; at inference (eval mode, no autograd) it runs
 the same cell equations as plain matrix products, which avoids the per-call setup cost of the fused
-LSTM kernel at batch 1 (milliseconds on CPU) and matches it to float rounding.
+LSTM kernel at batch 1 (milliseconds on CPU) and matches it to float rounding. On a GPU that holds only for
+a control tick's single step: the plain ops launch about seven kernels per layer and step, so a whole
+trajectory (validation: ViT+LSTM's 3 layers over ~420 steps, ~9,000 launches) took 170 ms on an H200 where
+the fused kernel takes a few; there, sequences of more than one step go to ``nn.LSTM``
+(``fused_at_inference``).
 
 On the CPU the training recurrence (forward and backward) runs on one thread: each of its T steps is a
 product of a few thousand numbers, far too small to split, and with two threads every step waits at an
@@ -44,7 +48,7 @@ def run_lstm(lstm: nn.LSTM, x: torch.Tensor, hidden: Hidden | None) -> tuple[tor
         hidden = zero_hidden(lstm, b, x.device, x.dtype)
     elif not is_tracing():
         check_hidden(lstm, hidden, b)
-    if lstm.training or torch.is_grad_enabled() or is_tracing():
+    if lstm.training or torch.is_grad_enabled() or is_tracing() or fused_at_inference(x.device.type, x.shape[1]):
         if x.device.type == "cpu" and torch.is_autocast_enabled("cpu") and not is_tracing():
             # torch 2.15's oneDNN LSTM refuses bf16 on CPUs without AVX512-BF16 ("could not create a primitive
             # descriptor"; seen on an AVX2-only AMD EPYC): the recurrence runs in fp32, the rest stays under autocast
@@ -55,6 +59,13 @@ def run_lstm(lstm: nn.LSTM, x: torch.Tensor, hidden: Hidden | None) -> tuple[tor
         out, (h, c) = lstm(x, tuple(hidden))
         return out, (h, c)
     return lstm_inference(lstm, x, hidden)
+
+
+def fused_at_inference(device_type: str, steps: int) -> bool:
+    """Whether an eval-mode, no-autograd call over ``steps`` time steps runs the fused ``nn.LSTM`` rather than
+    ``lstm_inference``'s step-by-step ops: on CUDA, for more than one step (a kernel launch per op and step
+    costs more there than the fused kernel's setup)."""
+    return device_type == "cuda" and steps > 1
 
 
 def _set_threads(threads: int) -> None:
