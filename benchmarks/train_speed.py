@@ -225,12 +225,8 @@ def measure_loop(model: str, arm: str, data: str, batches: int, skip: int, val_b
                      trainer_kwargs=trainer_kwargs, progress_bar=False, callbacks=[timer], select="last")
         with open(Path(out) / "metrics.csv") as f:
             val_s = next(float(r["time/val_s"]) for r in csv.DictReader(f) if r.get("time/val_s"))
-    rows = timer.batches
-    if len(rows) <= skip:
-        raise RuntimeError(f"only {len(rows)} training batches ran; need more than --fit-skip {skip}")
-    t0 = rows[skip - 1][0] if skip else 0.0
-    frames = sum(n for _, n in rows[skip:])
-    return {"fps": frames / (rows[-1][0] - t0), "warmup_s": t0, "padded": [stage.batch_size, "flights"],
+    rate = batch_rate(timer.batches, skip)
+    return {"fps": rate["fps"], "warmup_s": rate["warmup_s"], "padded": [stage.batch_size, "flights"],
             "val_s": val_s, "graphs": int(counters["stats"]["unique_graphs"]),
             "cudagraph_skips": int(counters["inductor"]["cudagraph_skips"])}
 
@@ -263,6 +259,12 @@ def measure_fit(model: str, root: str, data: str, batches: int, skip: int) -> di
         if proc.returncode != 0 or not out.exists():
             raise RuntimeError(f"vitfly fit failed in {root} (exit {proc.returncode}):\n{proc.stderr[-3000:]}")
         rows = json.loads(out.read_text())
+    return batch_rate(rows, skip)
+
+
+def batch_rate(rows: list[list[float]], skip: int) -> dict:
+    """frames/s over FitTimer's rows ([seconds at batch end, real frames]) after the first ``skip`` batches,
+    the seconds before them (start-up, compilation) and the frames counted."""
     if len(rows) <= skip:
         raise RuntimeError(f"only {len(rows)} training batches ran; need more than --fit-skip {skip}")
     t0 = rows[skip - 1][0] if skip else 0.0

@@ -4,8 +4,8 @@
 the same cell equations as plain matrix products, which avoids the per-call setup cost of the fused
 LSTM kernel at batch 1 (milliseconds on CPU) and matches it to float rounding. On a GPU that holds only for
 a control tick's single step: the plain ops launch about seven kernels per layer and step, so a whole
-trajectory (validation: ViT+LSTM's 3 layers over ~420 steps, ~9,000 launches) took 170 ms on an H200 where
-the fused kernel takes a few; there, sequences of more than one step go to ``nn.LSTM``
+trajectory (validation: ViT+LSTM's 3 layers over ~420 steps) is ~9,000 launches, by count the bulk of the
+170 ms a validation trajectory took on an H200; there, sequences of more than one step go to ``nn.LSTM``
 (``fused_at_inference``).
 
 On the CPU the training recurrence (forward and backward) runs on one thread: each of its T steps is a
