@@ -174,6 +174,7 @@ def measure_arm(
         torch.set_num_threads(threads)
     from vitfly.zoo.policy import create_policy
 
+    clear_compile_counts()
     torch.manual_seed(0)
     module = create_policy(model, **policy_kwargs).to(device)
     module.train()
@@ -190,13 +191,25 @@ def measure_arm(
     one_batch = train_batch_fn(module, optimizer, data, autocast, dev, clip)
 
     median_s, warmup_s = time_batches(one_batch, warmup, iters)
-    from torch._dynamo.utils import counters
-
     table = profile_table(one_batch, dev) if profile else None
     return {"fps": batch * steps / median_s, "warmup_s": warmup_s, "padded": list(data["mask"].shape),
-            **({"profile": table} if table else {}),
-            # compiled graphs, and how often inductor fell back from CUDA graphs (reasons on stderr)
-            "graphs": int(counters["stats"]["unique_graphs"]),
+            **({"profile": table} if table else {}), **compile_counts()}
+
+
+def clear_compile_counts() -> None:
+    """Zero dynamo's process-wide counters, so that a measurement counts only its own graphs (a test process
+    has compiled others before it)."""
+    from torch._dynamo.utils import counters
+
+    counters.clear()
+
+
+def compile_counts() -> dict:
+    """Graphs compiled since ``clear_compile_counts``, and how often inductor fell back from CUDA graphs
+    (its reasons are on stderr)."""
+    from torch._dynamo.utils import counters
+
+    return {"graphs": int(counters["stats"]["unique_graphs"]),
             "cudagraph_skips": int(counters["inductor"]["cudagraph_skips"])}
 
 
@@ -208,7 +221,6 @@ def measure_loop(model: str, arm: str, data: str, batches: int, skip: int, val_b
     import csv
 
     from fit_timer import FitTimer
-    from torch._dynamo.utils import counters
 
     from vitfly.training import train_policy
     from vitfly.workflows.reproduce_config import load_reproduce_config, split_callbacks, train_stage
@@ -219,6 +231,7 @@ def measure_loop(model: str, arm: str, data: str, batches: int, skip: int, val_b
                       "devices": 1, "limit_train_batches": batches, "limit_val_batches": val_batches,
                       "num_sanity_val_steps": 0, "max_time": None}
     timer = FitTimer()
+    clear_compile_counts()
     with tempfile.TemporaryDirectory() as out:
         train_policy(data, model, out, max_epochs=1, batch_size=stage.batch_size, val_fraction=stage.val_fraction,
                      seed=stage.seed, policy_kwargs=stage.policy_kwargs, data_kwargs=stage.data_kwargs,
@@ -227,8 +240,7 @@ def measure_loop(model: str, arm: str, data: str, batches: int, skip: int, val_b
             val_s = next(float(r["time/val_s"]) for r in csv.DictReader(f) if r.get("time/val_s"))
     rate = batch_rate(timer.batches, skip)
     return {"fps": rate["fps"], "warmup_s": rate["warmup_s"], "padded": [stage.batch_size, "flights"],
-            "val_s": val_s, "graphs": int(counters["stats"]["unique_graphs"]),
-            "cudagraph_skips": int(counters["inductor"]["cudagraph_skips"])}
+            "val_s": val_s, **compile_counts()}
 
 
 def profile_table(one_batch, dev, batches: int = 3, rows: int = 30) -> str:
