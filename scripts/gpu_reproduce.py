@@ -547,6 +547,7 @@ def status(args: argparse.Namespace) -> int:
     from scripts.gpu_carry import parked_size, preset_carry, write_carry
     from scripts.gpu_plan import FOLDER_BYTES, next_slot
     from scripts.gpu_slots import CARRY_BYTES, mib, travelling_bytes, tree_bytes
+    from scripts.gpu_travel import is_light, light_bytes
 
     cfg = load_cfg(args)
     rows = run_states(cfg)
@@ -554,7 +555,8 @@ def status(args: argparse.Namespace) -> int:
     for r in rows:
         print(f"{r.label:<{width}}  {r.text}" + (f" ({mib(r.size)} here)" if r.size else ""))
     carry_dir = preset_carry(args.carry_dir, cfg.preset)
-    tree = travelling_bytes(ROOT, leave_out=carry_dir)
+    # as the call travels: light (scripts/gpu_travel.py), the shipped weights and the docs left here
+    tree = travelling_bytes(ROOT, leave_out=carry_dir) - (0 if is_light(ROOT) else light_bytes(ROOT))
     # kept in the carry but not for this slot: finished runs (their weights until a commit lets carry stow them in
     # git's history), and runs trained on a CPU, counted as they will be once finished and stowed (a CPU run goes
     # on in the next session; GPU slots are rare, so they do not wait for it)
@@ -570,8 +572,9 @@ def status(args: argparse.Namespace) -> int:
     slot = next_slot(cfg, [r for r in rows if r.run.model not in cfg.train.cpu_models or r.state == "not started"],
                      room, args.carry_moments, args.deadline_s, args.reserve_s, kept)
     print(f"next slot carries {len(slot.carry)} unfinished runs, {mib(sum(slot.sizes.values()))} of the "
-          f"{mib(room)} a call leaves beside the working tree and .whl/ ({mib(tree)}) and the rest of the carry "
-          f"({mib(kept)})" + (f"; {', '.join(slot.no_room)} wait for a later slot (no room)" if slot.no_room else ""))
+          f"{mib(room)} a call leaves beside the working tree travelling light and .whl/ ({mib(tree)}) and the "
+          f"rest of the carry ({mib(kept)})"
+          + (f"; {', '.join(slot.no_room)} wait for a later slot (no room)" if slot.no_room else ""))
     for r in slot.carry:
         print(f"  carries: {r.label:<{width}}  last.* with {slot.moments[r.label]} moments")
     if slot.start:
@@ -597,6 +600,8 @@ def status(args: argparse.Namespace) -> int:
     flags = [f"--deadline-s {args.deadline_s:g}"] if args.deadline_s != DEADLINE_S else []
     flags += [f"--reserve-s {args.reserve_s:g}"] if args.reserve_s != RESERVE_S else []
     flags += [f"--moments {args.moments}"] if args.moments != "fp32" else []
+    print("  then, right before the call: python3 scripts/gpu.py travel light (weights/ and docs/ stay here; "
+          "right after it: travel full)")
     print(f"  carry: {json.dumps(['.whl'])} ({here}/ travels with the working tree)\n  command: python3 "
           f"scripts/gpu.py train --preset {cfg.preset} --out $OUT --expect-data-hash {data_hash}"
           + (f" --resume-from {here}" if slot.carry else "")

@@ -81,6 +81,21 @@ def test_a_carried_state_keeps_fp32_moments_where_they_fit(room, moments):
                      moments="bf16").sizes == {"vit_lstm-state": 28_705_912}
 
 
+@pytest.mark.parametrize("carried_moments, size", [(None, 42_960_564), ("bf16", 28_705_912)])
+def test_travelling_light_a_slot_carries_one_large_run_and_starts_a_second(carried_moments, size):
+    """60 MiB of room (62,914,560 bytes: the working tree travelling light, scripts/gpu_travel.py): ViT+LSTM, 7 of
+    100 epochs at 40.5 s, travels with fp32 moments (42.96e6), or with bf16 ones (28.71e6) when it was restored
+    from a carry in bf16 (fp32 would carry bf16's values no better); it will not finish, so it comes back with
+    bf16 moments (28.71e6), and ViT's 25.01e6 fit beside it (53.71e6), UNet+LSTM's 23.84e6 no more (77.55e6)."""
+    cfg = preset("paper")
+    marker = {"epochs": 7, "max_epochs": 100, "epoch_s": 40.5, "first_epoch_s": 68.2,
+              **({"carried_moments": carried_moments} if carried_moments else {})}
+    slot = next_slot(cfg, rows(cfg, unfinished={"vit_lstm-state": (28_583_064, marker)}), 60 * 2**20)
+    assert labels(slot.carry) == ["vit_lstm-state"] and slot.sizes == {"vit_lstm-state": size}
+    assert labels(slot.start) == ["vit-state"] and slot.back_bytes == 28_705_912 + 25_006_200
+    assert "would not fit the next carry" in slot.wait["unet_lstm-state"]
+
+
 @pytest.mark.parametrize("epoch_s, starts", [(10.0, []), (7.5, ["vit-state"])])
 def test_a_carried_run_frees_the_next_carry_only_when_it_will_finish(epoch_s, starts):
     """60 epochs left: 600 s or 450 s, against 560 - 40 - 60 = 460 s of training in a slot; ViT's 25.01e6 bytes
