@@ -14,7 +14,13 @@ import torch
 from test_datamodule import write_dataset
 
 from vitfly.datamodules.datamodule import TrajectoryDataModule
-from vitfly.datamodules.dataset import TrajectoryDataset, collate_trajectories, depth_to_unit_float
+from vitfly.datamodules.dataset import (
+    HOST_LENGTHS,
+    TrajectoryDataset,
+    collate_trajectories,
+    depth_to_unit_float,
+    pad_to_bucket,
+)
 from vitfly.datamodules.resident import ResidentTrajectories, collate_windows, resident_bytes
 from vitfly.errors import VitflyError
 from vitfly.zoo import compile_encoder, create_model
@@ -65,7 +71,7 @@ def test_resident_loader_gives_the_streamed_batches(data_path):
         dm.setup("fit")
         out = {}
         for name, loader in (("train", dm.train_dataloader()), ("val", dm.val_dataloader())):
-            out[name] = [dm.on_after_batch_transfer(b, 0) for b in loader]
+            out[name] = [dm.on_after_batch_transfer(dm.on_before_batch_transfer(b, 0), 0) for b in loader]
         return out
 
     streamed, resident = batches(False), batches(True)
@@ -73,6 +79,9 @@ def test_resident_loader_gives_the_streamed_batches(data_path):
         assert len(resident[name]) == len(streamed[name]) > 0
         for a, b in zip(resident[name], streamed[name], strict=True):
             assert a["depth"].dtype == torch.float32
+            # the rows' lengths as the host had them before the trip: the streamed batch's mask, counted
+            assert a.pop(HOST_LENGTHS) == b["mask"].sum(dim=1).tolist()
+            assert a.keys() == b.keys()
             for key in a:
                 torch.testing.assert_close(a[key], b[key], rtol=0, atol=0, msg=key)
 
@@ -114,6 +123,30 @@ def test_chunks_carry_valid_counts_worked_out_from_the_lengths(data_path):
         depth_to_unit_float(collate_trajectories([ds[1]]))
     )
     assert whole["n_valid"] == 23 and whole["all_valid"]
+
+
+@pytest.mark.parametrize("static_shapes", [False, True])
+def test_chunks_from_the_hosts_lengths_never_wait_for_the_device(data_path, static_shapes):
+    """A resident batch carries its rows' lengths on the host (``lengths_host``), padded to a bucket of 32 steps
+    and 4 rows: its chunks are the ones its mask gives, and come without a copy of the mask to the host (here a
+    mask on the meta device, which cannot be copied: a host copy would raise)."""
+    dm = TrajectoryDataModule(data_path, batch_size=4, val_fraction=0.0, resident=True, time_bucket_steps=32)
+    dm.setup("fit")
+    index = collate_windows([(0, 0, 10), (1, 0, 23), (3, 0, 6)])  # lengths 10, 23, 6: a short last batch
+    batch = pad_to_bucket(dm.on_after_batch_transfer(dm.on_before_batch_transfer(index, 0), 0), 32, 4)
+    assert batch[HOST_LENGTHS] == [10, 23, 6, 0] and batch["mask"].shape == (4, 32)
+    module = create_policy("convnet", tbptt_steps=8, static_shapes=static_shapes)
+    expected = [(c["n_valid"], c["all_valid"], c["mask"].shape) for c in module.tbptt_chunks(
+        {k: v for k, v in batch.items() if k != HOST_LENGTHS})]
+    # by hand: steps 0-7 valid for 8+8+6, 8-15 for 2+8, 16-22 for 7 (16-23 with static shapes: whole chunks)
+    assert [(n, tuple(shape)) for n, _, shape in expected] == [(22, (4, 8)), (10, (4, 8)),
+                                                               (7, (4, 8 if static_shapes else 7))]
+    on_meta = {**batch, **{k: batch[k].to("meta") for k in ("depth", "desired_speed", "quat", "velocity_cmd",
+                                                              "mask")}}
+    with pytest.raises(NotImplementedError):
+        on_meta["mask"].cpu()
+    got = [(c["n_valid"], c["all_valid"], c["mask"].shape) for c in module.tbptt_chunks(on_meta)]
+    assert got == expected
 
 
 # -- one-threaded LSTM, fused Adam ---------------------------------------------------------------

@@ -26,6 +26,7 @@ from torch.utils.data import DataLoader, Sampler
 from vitfly.atomic import write_text
 from vitfly.datamodules.augment import check_mirror_prob, random_mirror
 from vitfly.datamodules.dataset import (
+    HOST_LENGTHS,
     TrajectoryDataset,
     check_time_bucket,
     collate_trajectories,
@@ -398,10 +399,15 @@ class TrajectoryDataModule(L.LightningDataModule):
             batch_sampler=sampler,
         )
 
+    def on_before_batch_transfer(self, batch: dict, dataloader_idx: int) -> dict:
+        if "depth" not in batch and "length" in batch:  # a resident batch: its lengths stay on the host too
+            batch[HOST_LENGTHS] = batch["length"].tolist()
+        return batch
+
     def on_after_batch_transfer(self, batch: dict, dataloader_idx: int) -> dict:
         if "depth" not in batch and "length" in batch:  # a resident batch: indices only, gathered here
             batch = self._resident_store(batch["length"].device).gather(
-                batch["traj_index"], batch["start"], batch["length"]
+                batch["traj_index"], batch["start"], batch["length"], batch.get(HOST_LENGTHS)
             )
         # the one place augmentation happens: training batches only, once the batch holds its depth
         # (streamed or gathered from the resident copy)

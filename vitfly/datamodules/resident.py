@@ -18,7 +18,7 @@ import numpy as np
 import torch
 from torch.utils.data import Dataset
 
-from vitfly.datamodules.dataset import TRAINING_FIELDS
+from vitfly.datamodules.dataset import HOST_LENGTHS, TRAINING_FIELDS
 from vitfly.datamodules.schema import open_trajectories
 
 # bytes per step: uint8 60 x 90 depth + float32 speed (1), quat (4), velocity_cmd (3)
@@ -78,16 +78,22 @@ class ResidentTrajectories:
         tensors = (self.depth, self.desired_speed, self.quat, self.velocity_cmd, self.offsets)
         return sum(t.numel() * t.element_size() for t in tensors)
 
-    def gather(self, traj_index: torch.Tensor, start: torch.Tensor, length: torch.Tensor) -> dict[str, torch.Tensor]:
+    def gather(self, traj_index: torch.Tensor, start: torch.Tensor, length: torch.Tensor,
+               lengths_host: list[int] | None = None) -> dict[str, torch.Tensor]:
         """The padded batch of windows ``[start, start + length)`` of trajectories ``traj_index`` (each (B,)).
 
         Same tensors as ``collate_trajectories(..., depth_dtype=torch.uint8)`` of the same windows: depth
         uint8 (B, T, 1, 60, 90), desired_speed (B, T, 1), quat (B, T, 4), velocity_cmd (B, T, 3), mask
-        (B, T), traj_index and start (B,), zeros on padded steps; T is the longest window.
+        (B, T), traj_index and start (B,), zeros on padded steps; T is the longest window. ``lengths_host``:
+        ``length`` as the host had it before the batch went to the device; the batch's shape comes from it
+        without waiting for the device, and the batch carries it on (``HOST_LENGTHS``).
         """
         device = self.device
         traj_index, start, length = (t.to(device=device, dtype=torch.long) for t in (traj_index, start, length))
-        t_max = int(length.max()) if length.numel() else 0  # one host sync per batch, for the batch's shape
+        if lengths_host is not None:
+            t_max = max(lengths_host, default=0)
+        else:  # the batch's shape from the device: the host waits for every step queued before it
+            t_max = int(length.max()) if length.numel() else 0
         steps = torch.arange(t_max, device=device)
         mask = steps.unsqueeze(0) < length.unsqueeze(1)
         rows = (self.offsets[traj_index] + start).unsqueeze(1) + steps.unsqueeze(0)
@@ -100,6 +106,7 @@ class ResidentTrajectories:
             "mask": mask,
             "traj_index": traj_index,
             "start": start,
+            **({HOST_LENGTHS: list(lengths_host)} if lengths_host is not None else {}),
         }
 
 

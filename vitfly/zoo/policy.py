@@ -296,14 +296,20 @@ class PolicyModule(L.LightningModule):
         of trailing all-padding steps; stops at the first chunk without a valid step.
 
         Chunk bounds and valid-frame counts come from one host copy of the (B, T) mask, so the loop
-        over chunks waits for the device once per batch, not several times per chunk. Each chunk also
+        over chunks waits for the device once per batch, not several times per chunk; not at all when
+        the batch carries its rows' lengths on the host (``lengths_host``, the datamodule's resident
+        batches: trajectories are padded at the end, so the mask is ``step < length``). Each chunk also
         carries ``n_valid`` (its number of valid steps, a Python int) and ``all_valid``. With
         ``static_shapes`` chunks keep their full length (the last one reaching into the padding is not
         trimmed), so every chunk of a batch padded to a multiple of ``tbptt_steps`` has the same shape.
         """
         mask = batch["mask"]
         k = self.tbptt_steps or mask.shape[1]
-        host_mask = mask.cpu()
+        lengths = batch.get("lengths_host")
+        if lengths is not None and len(lengths) == mask.shape[0]:  # the mask, without a wait for the device
+            host_mask = torch.arange(mask.shape[1]).unsqueeze(0) < torch.tensor(lengths).unsqueeze(1)
+        else:
+            host_mask = mask.cpu()
         valid_steps = host_mask.any(dim=0)
         if not bool(valid_steps.any()):
             return
@@ -413,7 +419,9 @@ class PolicyModule(L.LightningModule):
         # sync_dist: under DDP the mean over every rank's valid steps (a no-op in a single process)
         n = max(n_valid, 1)
         self.log("train/loss", mean_loss, on_step=True, on_epoch=True, prog_bar=True, batch_size=n, sync_dist=True)
-        self.log("lr", opt.param_groups[0]["lr"], on_step=False, on_epoch=True, sync_dist=True)
+        # weighted by the batch's rows, as Lightning would infer it (a batch may carry a host list besides tensors)
+        self.log("lr", opt.param_groups[0]["lr"], on_step=False, on_epoch=True, sync_dist=True,
+                 batch_size=batch["mask"].shape[0])
         return mean_loss
 
     def _set_lr(self, opt, batch_idx: int) -> None:
