@@ -556,7 +556,11 @@ def status(args: argparse.Namespace) -> int:
         print(f"{r.label:<{width}}  {r.text}" + (f" ({mib(r.size)} here)" if r.size else ""))
     carry_dir = preset_carry(args.carry_dir, cfg.preset)
     # as the call travels: light (scripts/gpu_travel.py), the shipped weights and the docs left here
-    tree = travelling_bytes(ROOT, leave_out=carry_dir) - (0 if is_light(ROOT) else light_bytes(ROOT))
+    light = is_light(ROOT)
+    tree = travelling_bytes(ROOT, leave_out=carry_dir) - (0 if light else light_bytes(ROOT))
+    if light:
+        print("  travelling light now (weights/ and docs/ out of git's index, commits refused): once the device "
+              "call is done, python3 scripts/gpu.py travel full")
     # kept in the carry but not for this slot: finished runs (their weights until a commit lets carry stow them in
     # git's history), and runs trained on a CPU, counted as they will be once finished and stowed (a CPU run goes
     # on in the next session; GPU slots are rare, so they do not wait for it)

@@ -121,8 +121,9 @@ def travel(args: argparse.Namespace) -> int:
         print(f"travelling light: a device call sends {mib(sends)} of its {mib(CARRY_BYTES)} ({', '.join(LIGHT)} "
               "stay here); after the call: python3 scripts/gpu.py travel full")
     else:
-        print(f"travelling full: a device call sends {mib(sends)} of its {mib(CARRY_BYTES)}; light it would send "
-              f"{mib(sends - light_bytes(root))} (python3 scripts/gpu.py travel light, right before the call)")
+        over = " (over: the device tool would refuse the call)" if sends > CARRY_BYTES else ""
+        print(f"travelling full: a device call sends {mib(sends)} of its {mib(CARRY_BYTES)}{over}; light it would "
+              f"send {mib(sends - light_bytes(root))} (python3 scripts/gpu.py travel light, right before the call)")
     return 0
 
 
