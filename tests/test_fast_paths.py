@@ -80,7 +80,7 @@ def test_resident_loader_gives_the_streamed_batches(data_path):
         for a, b in zip(resident[name], streamed[name], strict=True):
             assert a["depth"].dtype == torch.float32
             # the rows' lengths as the host had them before the trip: the streamed batch's mask, counted
-            assert a.pop(HOST_LENGTHS) == b["mask"].sum(dim=1).tolist()
+            assert a.pop(HOST_LENGTHS).tolist() == b["mask"].sum(dim=1).tolist()
             assert a.keys() == b.keys()
             for key in a:
                 torch.testing.assert_close(a[key], b[key], rtol=0, atol=0, msg=key)
@@ -133,8 +133,11 @@ def test_chunks_from_the_hosts_lengths_never_wait_for_the_device(data_path, stat
     dm = TrajectoryDataModule(data_path, batch_size=4, val_fraction=0.0, resident=True, time_bucket_steps=32)
     dm.setup("fit")
     index = collate_windows([(0, 0, 10), (1, 0, 23), (3, 0, 6)])  # lengths 10, 23, 6: a short last batch
+    # the trip to a device leaves the lengths on the host (here the meta device: no data, only shapes)
+    moved = dm.transfer_batch_to_device(dm.on_before_batch_transfer(dict(index), 0), torch.device("meta"), 0)
+    assert moved["length"].is_meta and moved["traj_index"].is_meta and moved[HOST_LENGTHS].device.type == "cpu"
     batch = pad_to_bucket(dm.on_after_batch_transfer(dm.on_before_batch_transfer(index, 0), 0), 32, 4)
-    assert batch[HOST_LENGTHS] == [10, 23, 6, 0] and batch["mask"].shape == (4, 32)
+    assert batch[HOST_LENGTHS].tolist() == [10, 23, 6, 0] and batch["mask"].shape == (4, 32)
     module = create_policy("convnet", tbptt_steps=8, static_shapes=static_shapes)
     expected = [(c["n_valid"], c["all_valid"], c["mask"].shape) for c in module.tbptt_chunks(
         {k: v for k, v in batch.items() if k != HOST_LENGTHS})]

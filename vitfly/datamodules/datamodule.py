@@ -401,7 +401,15 @@ class TrajectoryDataModule(L.LightningDataModule):
 
     def on_before_batch_transfer(self, batch: dict, dataloader_idx: int) -> dict:
         if "depth" not in batch and "length" in batch:  # a resident batch: its lengths stay on the host too
-            batch[HOST_LENGTHS] = batch["length"].tolist()
+            batch[HOST_LENGTHS] = batch["length"]
+        return batch
+
+    def transfer_batch_to_device(self, batch: Any, device: torch.device, dataloader_idx: int) -> Any:
+        """Every tensor to ``device`` but ``HOST_LENGTHS``, which is there to stay on the host."""
+        host = batch.pop(HOST_LENGTHS, None) if isinstance(batch, dict) else None
+        batch = super().transfer_batch_to_device(batch, device, dataloader_idx)
+        if host is not None:
+            batch[HOST_LENGTHS] = host
         return batch
 
     def on_after_batch_transfer(self, batch: dict, dataloader_idx: int) -> dict:

@@ -21,7 +21,7 @@ from vitfly.errors import VitflyError
 
 # what the policy needs from each step (the rest of the schema stays on disk)
 TRAINING_FIELDS = ("depth", "desired_speed", "quat", "velocity_cmd")
-# optional batch key: each row's valid steps as a Python list, kept on the host while the tensors go to the
+# optional batch key: each row's valid steps, (B,) int64 kept on the host while the other tensors go to the
 # device (resident batches), so that the batch's shape and its TBPTT chunks need not wait for the device
 HOST_LENGTHS = "lengths_host"
 
@@ -187,13 +187,10 @@ def pad_to_bucket(batch: dict[str, torch.Tensor], bucket_steps: int, batch_size:
         return batch
     out = {}
     for key, value in batch.items():
-        if key == HOST_LENGTHS:  # the added rows have no valid step
-            out[key] = [*value, *[0] * (b_to - b)]
-            continue
         if value.dim() >= 2 and tuple(value.shape[:2]) == (b, t):  # per step: depth, telemetry, mask
             padded = value.new_zeros((b_to, t_to, *value.shape[2:]))
             padded[:b, :t] = value
-        elif value.dim() == 1 and value.shape[0] == b:  # per row: traj_index, start
+        elif value.dim() == 1 and value.shape[0] == b:  # per row: traj_index, start, lengths_host (0: no step)
             padded = value.new_full((b_to,), -1 if key == "traj_index" else 0)
             padded[:b] = value
         else:

@@ -79,7 +79,7 @@ class ResidentTrajectories:
         return sum(t.numel() * t.element_size() for t in tensors)
 
     def gather(self, traj_index: torch.Tensor, start: torch.Tensor, length: torch.Tensor,
-               lengths_host: list[int] | None = None) -> dict[str, torch.Tensor]:
+               lengths_host: torch.Tensor | None = None) -> dict[str, torch.Tensor]:
         """The padded batch of windows ``[start, start + length)`` of trajectories ``traj_index`` (each (B,)).
 
         Same tensors as ``collate_trajectories(..., depth_dtype=torch.uint8)`` of the same windows: depth
@@ -90,10 +90,8 @@ class ResidentTrajectories:
         """
         device = self.device
         traj_index, start, length = (t.to(device=device, dtype=torch.long) for t in (traj_index, start, length))
-        if lengths_host is not None:
-            t_max = max(lengths_host, default=0)
-        else:  # the batch's shape from the device: the host waits for every step queued before it
-            t_max = int(length.max()) if length.numel() else 0
+        known = length if lengths_host is None else lengths_host  # on the device, the host waits for its queue
+        t_max = int(known.max()) if known.numel() else 0
         steps = torch.arange(t_max, device=device)
         mask = steps.unsqueeze(0) < length.unsqueeze(1)
         rows = (self.offsets[traj_index] + start).unsqueeze(1) + steps.unsqueeze(0)
@@ -106,7 +104,7 @@ class ResidentTrajectories:
             "mask": mask,
             "traj_index": traj_index,
             "start": start,
-            **({HOST_LENGTHS: list(lengths_host)} if lengths_host is not None else {}),
+            **({HOST_LENGTHS: lengths_host} if lengths_host is not None else {}),
         }
 
 

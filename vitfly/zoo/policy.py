@@ -306,8 +306,8 @@ class PolicyModule(L.LightningModule):
         mask = batch["mask"]
         k = self.tbptt_steps or mask.shape[1]
         lengths = batch.get("lengths_host")
-        if lengths is not None and len(lengths) == mask.shape[0]:  # the mask, without a wait for the device
-            host_mask = torch.arange(mask.shape[1]).unsqueeze(0) < torch.tensor(lengths).unsqueeze(1)
+        if lengths is not None and lengths.device.type == "cpu" and lengths.shape == mask.shape[:1]:
+            host_mask = torch.arange(mask.shape[1]).unsqueeze(0) < lengths.unsqueeze(1)  # no wait for the device
         else:
             host_mask = mask.cpu()
         valid_steps = host_mask.any(dim=0)
@@ -419,9 +419,7 @@ class PolicyModule(L.LightningModule):
         # sync_dist: under DDP the mean over every rank's valid steps (a no-op in a single process)
         n = max(n_valid, 1)
         self.log("train/loss", mean_loss, on_step=True, on_epoch=True, prog_bar=True, batch_size=n, sync_dist=True)
-        # weighted by the batch's rows, as Lightning would infer it (a batch may carry a host list besides tensors)
-        self.log("lr", opt.param_groups[0]["lr"], on_step=False, on_epoch=True, sync_dist=True,
-                 batch_size=batch["mask"].shape[0])
+        self.log("lr", opt.param_groups[0]["lr"], on_step=False, on_epoch=True, sync_dist=True)
         return mean_loss
 
     def _set_lr(self, opt, batch_idx: int) -> None:
