@@ -25,7 +25,8 @@ There (the device machine, 16 cores and one GPU; at most 10 minutes a command; t
    weights in fp16, as the shipped weights); an unfinished one as its resume state (``scripts/gpu_slots.py``:
    ``last.ckpt`` with fp32 weights, Adam moments in fp32 or ``--moments bf16``, loop and random-generator
    state; the best checkpoint so far in fp16; ``unfinished.json``: epochs done, data hash, the slots so far).
-   DIR/gpu_reproduce.json says what happened to each run and holds the pieces' manifest; the command exits 0
+   DIR/gpu_reproduce.json says what happened to each run, how busy they kept the card (``card_load``:
+   ``nvidia-smi`` every 5 s, ``scripts/gpu_load.py``) and holds the pieces' manifest; the command exits 0
    when every run came back (finished, or unfinished with at least one more epoch) or was finished before.
 
 Here (the machine that goes on with the preset):
@@ -60,6 +61,7 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
+from scripts.gpu_load import CardLoad  # noqa: E402
 from scripts.gpu_preset import flies_best, load_cfg, local_data_hash, parse_label, run_dir  # noqa: E402
 
 SLOT_ENDED_RC = 3  # train-one's exit status when the slot ended before the run did
@@ -407,8 +409,11 @@ def train(args: argparse.Namespace) -> int:
     place_resumed(cfg, resumed)
     todo = runs_to_train(cfg, labels, report)
     deadline = start + args.deadline_s - args.reserve_s
-    procs = start_runs(args, todo, resumed, time.time() + deadline - time.monotonic(), work)
-    ended = wait_runs(procs, deadline)
+    with CardLoad(work / "card_load.csv") as load:  # how busy the runs kept the card, for the next plan
+        procs = start_runs(args, todo, resumed, time.time() + deadline - time.monotonic(), work)
+        ended = wait_runs(procs, deadline)
+    report["card_load"] = load.summary()
+    log(f"card load: { {k: v for k, v in report['card_load'].items() if k != 'utilization_samples'} }")
     return return_runs(cfg, args, todo, ended, resumed, data_hash, report, start)
 
 
