@@ -2,12 +2,13 @@
 which runs it starts (``scripts/gpu.py status`` prints it, ``scripts/gpu.py carry`` writes the carry).
 
 What a slot does not finish comes home as a resume state, and the next slot must carry it back: the device tool
-sends the working tree (3.3 MiB without carry/ when it travels light: ``scripts/gpu_travel.py`` leaves the
+sends the working tree (2.1 MiB without carry/ when it travels light: ``scripts/gpu_travel.py`` leaves the
 shipped weights and the docs here), carry/ and .whl/, 64 MiB in all, so the carry holds what the rest leaves,
 less what it keeps for runs that do not go to this slot (runs trained on a CPU, finished runs' weights). A
 carried state is lean (``scripts/gpu_carry.py``): last.* (fp32 weights and Adam's moments, in fp32 where they
 fit, else in bf16: an inexact resume), and best.* in fp16 only where the preset flies the best epoch. So a slot
-carries the unfinished runs (``train.slot_order`` first) within that room, and starts runs not started yet, in
+carries the unfinished runs (``train.slot_order`` first) within that room, as many as fit in bf16 and then fp32
+for those the room still holds, and starts runs not started yet, in
 the same order, only while the states expected home still fit it: a carried run that will not finish in this
 slot (its last slot's epoch time says so) counts with its size, a new run with its state's size estimated from
 its parameter count. A run whose state could never travel (ResNet-18's) starts only alone, and must finish
@@ -118,19 +119,25 @@ def next_slot(cfg, rows: list[RunState], carry_bytes: int, moments: str = "auto"
     slot = Slot()
     cpu = set(cfg.train.cpu_models)
     train_s = deadline_s - reserve_s - STARTUP_S
+    # which unfinished runs travel, each in its smallest precision, in slot order; then, in the same order, exact
+    # (fp32) moments where the room still holds them: a second run carried beats the first carried exactly
     carried = 0
     for r in sorted((r for r in rows if r.state == "unfinished"), key=lambda r: slot_rank(cfg, r.run)):
         # restored from a carry in bf16, its moments are bf16's values already: fp32 would carry them no better
         allowed = ("bf16",) if r.marker.get("carried_moments") == "bf16" else MOMENTS[moments]
-        fits = [m for m in allowed if carried + state_bytes(cfg, r.run, m) <= carry_bytes]
-        if fits:
-            size = state_bytes(cfg, r.run, fits[0])
-            slot.carry.append(r)
-            slot.moments[r.label], slot.sizes[r.label] = fits[0], size
-            carried += size
-            slot.back_bytes += 0 if finishes(r, train_s) else state_bytes(cfg, r.run, MOMENTS[moments][-1])
-        else:
+        size = state_bytes(cfg, r.run, allowed[-1])
+        if carried + size > carry_bytes:
             slot.no_room.append(r.label)
+            continue
+        slot.carry.append(r)
+        slot.moments[r.label], slot.sizes[r.label] = allowed[-1], size
+        carried += size
+        slot.back_bytes += 0 if finishes(r, train_s) else state_bytes(cfg, r.run, MOMENTS[moments][-1])
+    for r in slot.carry:
+        allowed = ("bf16",) if r.marker.get("carried_moments") == "bf16" else MOMENTS[moments]
+        best = next(m for m in allowed if carried - slot.sizes[r.label] + state_bytes(cfg, r.run, m) <= carry_bytes)
+        carried += state_bytes(cfg, r.run, best) - slot.sizes[r.label]
+        slot.moments[r.label], slot.sizes[r.label] = best, state_bytes(cfg, r.run, best)
     for r in sorted((r for r in rows if r.state == "not started"), key=lambda r: slot_rank(cfg, r.run)):
         if r.run.model in cpu:
             slot.on_cpu.append(r)

@@ -96,6 +96,20 @@ def test_travelling_light_a_slot_carries_one_large_run_and_starts_a_second(carri
     assert "would not fit the next carry" in slot.wait["unet_lstm-state"]
 
 
+@pytest.mark.parametrize("room, moments", [(60 * 2**20, ("bf16", "bf16")), (70_000_000, ("fp32", "bf16"))])
+def test_two_unfinished_runs_travel_together_before_either_travels_exactly(room, moments):
+    """ViT+LSTM and ViT both unfinished: 28,705,912 + 25,006,200 = 53,712,112 bytes with bf16 moments fit 60 MiB
+    (62,914,560); ViT+LSTM's fp32 moments (42,960,564) would leave ViT out, so both go in bf16. With 70,000,000
+    of room ViT+LSTM's fp32 moments fit beside ViT's bf16 ones (67,966,764), ViT's fp32 ones (37,410,996) no more
+    (80,371,560)."""
+    cfg = preset("paper")
+    marker = {"epochs": 20, "max_epochs": 100, "epoch_s": 40.0, "first_epoch_s": 70.0}
+    slot = next_slot(cfg, rows(cfg, unfinished={"vit_lstm-state": (0, marker), "vit-state": (0, marker)}), room)
+    assert labels(slot.carry) == ["vit_lstm-state", "vit-state"] and slot.no_room == []
+    assert (slot.moments["vit_lstm-state"], slot.moments["vit-state"]) == moments
+    assert sum(slot.sizes.values()) == {("bf16", "bf16"): 53_712_112, ("fp32", "bf16"): 67_966_764}[moments]
+
+
 @pytest.mark.parametrize("epoch_s, starts", [(10.0, []), (7.5, ["vit-state"])])
 def test_a_carried_run_frees_the_next_carry_only_when_it_will_finish(epoch_s, starts):
     """60 epochs left: 600 s or 450 s, against 560 - 40 - 60 = 460 s of training in a slot; ViT's 25.01e6 bytes
