@@ -137,17 +137,6 @@ def park(cfg, r, dst: Path, moments: str) -> int:
     return tree_bytes(dst)
 
 
-def parked_size(cfg, r, moments: str) -> int:
-    """What ``park`` will write for ``r``, estimated from its network's parameter count; ``moments="done"``: what it
-    will write once the run is finished (the flown weights in fp16)."""
-    from scripts.gpu_plan import FOLDER_BYTES, STATE_BYTES_PER_PARAM, parameters
-
-    params = parameters(cfg, r.run)
-    if r.state == "done" or moments == "done":
-        return 2 * params + FOLDER_BYTES
-    return params * (STATE_BYTES_PER_PARAM[moments] + 2 * (flown_checkpoint(cfg, r) is not None)) + FOLDER_BYTES
-
-
 def carried_epochs(folder: Path) -> float:
     """How far a carried run is: its epochs, infinite when done (nothing here replaces a finished run)."""
     if (folder / "done.json").exists():
@@ -171,11 +160,12 @@ def check_carry(carry_dir: Path) -> dict[str, Path]:
 
 def write_carry(cfg, rows: list, slot, carry_dir: Path, room: int) -> None:
     """Every run of ``rows`` that trained here into ``carry_dir``: the slot's carried runs with the moments its
-    plan chose, the other unfinished ones with bf16 moments where fp32 ones would not fit ``room``. A carried run
-    that is not here (a new checkout not restored) or further along than here stays as it is; each folder is
-    written beside its old one and then replaces it. Says (one line) when the carry leaves a call too little."""
+    plan chose, the others (they stay here when the call travels light: ``scripts/gpu_travel.py``) with fp32
+    moments. A carried run that is not here (a new checkout not restored) or further along than here stays as it
+    is; each folder is written beside its old one and then replaces it. Says (one line) when the slot's runs
+    take more than ``room``, what a call leaves the carry."""
     carried = check_carry(carry_dir)
-    written = 0
+    written = travelling = 0
     for r in rows:
         old = carried.get(r.label)
         if old is not None and (old / "done.json").exists():  # finished: it never changes again
@@ -191,10 +181,12 @@ def write_carry(cfg, rows: list, slot, carry_dir: Path, room: int) -> None:
             continue
         if r.folder is None:
             continue
-        moments = slot.moments.get(r.label) or ("fp32" if written + parked_size(cfg, r, "fp32") <= room else "bf16")
+        moments = slot.moments.get(r.label, "fp32")
         tmp = carry_dir / f".{r.label}.writing"
         shutil.rmtree(tmp, ignore_errors=True)
-        written += park(cfg, r, tmp, moments)
+        size = park(cfg, r, tmp, moments)
+        written += size
+        travelling += size if r.label in slot.moments else 0
         if old is not None:
             shutil.rmtree(old)
         tmp.rename(carry_dir / r.label)
@@ -203,10 +195,11 @@ def write_carry(cfg, rows: list, slot, carry_dir: Path, room: int) -> None:
     if not written:
         print(f"  nothing has trained here: {carry_dir}/ holds nothing")
         return
-    print(f"  {carry_dir}/ holds {mib(written)}; commit it: the next session and the next slot go on from it")
-    if written > room:
-        print(f"  the carry ({mib(written)}) is over the {mib(room)} a device call leaves it: a call would be "
-              "refused; fly or drop finished runs, or finish an unfinished one here, first")
+    print(f"  {carry_dir}/ holds {mib(written)}, {mib(travelling)} of it for the slot; commit it: the next session "
+          "and the next slot go on from it")
+    if travelling > room:
+        print(f"  the slot's runs ({mib(travelling)}) are over the {mib(room)} a device call leaves them: a call "
+              "would be refused")
 
 
 def materialize(folder: Path) -> None:

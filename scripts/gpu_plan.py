@@ -2,18 +2,17 @@
 which runs it starts (``scripts/gpu.py status`` prints it, ``scripts/gpu.py carry`` writes the carry).
 
 What a slot does not finish comes home as a resume state, and the next slot must carry it back: the device tool
-sends the working tree (2.1 MiB without carry/ when it travels light: ``scripts/gpu_travel.py`` leaves the
-shipped weights and the docs here), carry/ and .whl/, 64 MiB in all, so the carry holds what the rest leaves,
-less what it keeps for runs that do not go to this slot (runs trained on a CPU, finished runs' weights). A
-carried state is lean (``scripts/gpu_carry.py``): last.* (fp32 weights and Adam's moments, in fp32 where they
-fit, else in bf16: an inexact resume), and best.* in fp16 only where the preset flies the best epoch. So a slot
-carries the unfinished runs (``train.slot_order`` first) within that room, as many as fit in bf16 and then fp32
-for those the room still holds, and starts runs not started yet, in
-the same order, only while the states expected home still fit it: a carried run that will not finish in this
-slot (its last slot's epoch time says so) counts with its size, a new run with its state's size estimated from
-its parameter count. A run whose state could never travel (ResNet-18's) starts only alone, and must finish
-inside the command. Runs of ``train.cpu_models`` train on a CPU and are left out, as are runs being trained here
-(``vitfly reproduce`` resumes them).
+sends the working tree, carry/ and .whl/, 64 MiB in all. Travelling light (``scripts/gpu_travel.py``) the tree is
+2.1 MiB without carry/: the shipped weights, the docs and the carried runs that do not go to this slot (trained
+on a CPU, or finished) stay here, so the carry holds what the rest leaves. A carried state is lean
+(``scripts/gpu_carry.py``): last.* (fp32 weights and Adam's moments, in fp32 where they fit, else in bf16: an
+inexact resume), and best.* in fp16 only where the preset flies the best epoch. So a slot carries the unfinished
+runs (``train.slot_order`` first) within that room, as many as fit in bf16 and then fp32 for those the room still
+holds, and starts runs not started yet, in the same order, only while the states expected home still fit it: a
+carried run that will not finish in this slot (its last slot's epoch time says so) counts with its size, a new
+run with its state's size estimated from its parameter count. A run whose state could never travel (ResNet-18's)
+starts only alone, and must finish inside the command. Runs of ``train.cpu_models`` train on a CPU and are left
+out, as are runs being trained here (``vitfly reproduce`` resumes them).
 """
 
 from __future__ import annotations
@@ -109,11 +108,10 @@ def finishes(r: RunState, train_s: float) -> bool:
 
 
 def next_slot(cfg, rows: list[RunState], carry_bytes: int, moments: str = "auto",
-              deadline_s: float = 560.0, reserve_s: float = 40.0, kept_bytes: int = 0) -> Slot:
+              deadline_s: float = 560.0, reserve_s: float = 40.0) -> Slot:
     """The next slot for the runs ``rows`` (every run of the preset, as ``run_states`` lists them); ``carry_bytes``:
-    the room a call leaves the carry; ``moments``: what the carried moments may be (auto: fp32 where they fit);
-    ``kept_bytes``: what carry/ keeps for runs that do not go to the slot, already taken from ``carry_bytes``
-    (runs on a CPU, finished runs' weights)."""
+    the room a call leaves the carry (the carried runs of no slot stay here: ``scripts/gpu_travel.py``);
+    ``moments``: what the carried moments may be (auto: fp32 where they fit)."""
     from scripts.gpu_slots import mib
 
     slot = Slot()
@@ -143,10 +141,7 @@ def next_slot(cfg, rows: list[RunState], carry_bytes: int, moments: str = "auto"
             slot.on_cpu.append(r)
             continue
         size = state_bytes(cfg, r.run, MOMENTS[moments][-1])  # the next carry may shrink its moments
-        if carry_bytes < size <= carry_bytes + kept_bytes:
-            slot.wait[r.label] = (f"state {mib(size)}: would not fit the next carry beside what carry/ keeps for "
-                                  f"other runs ({mib(kept_bytes)}); finish those first")
-        elif size > carry_bytes:  # it cannot come back unfinished: alone, with the whole command
+        if size > carry_bytes:  # it cannot come back unfinished: alone, with the whole command
             if not slot.carry and not slot.start:
                 slot.start.append(r)
                 slot.alone = f"{r.label}'s state ({mib(size)}) cannot travel: it must finish inside this command"

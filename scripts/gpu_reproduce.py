@@ -386,6 +386,9 @@ def train(args: argparse.Namespace) -> int:
     work.mkdir(parents=True, exist_ok=True)
     cfg = load_cfg(args)
     resumed = resume_sources(args.resume_from, args.preset)
+    for label in [k for k in resumed if parse_label(k).model in cfg.train.cpu_models and k not in args.runs]:
+        log(f"{label}: trains on a CPU (train.cpu_models); not resumed here (name it in --runs to)")
+        del resumed[label]
     labels = list(dict.fromkeys([*args.runs, *resumed]))
     if not labels:
         raise SystemExit("train: nothing to train; name runs with --runs or resume states with --resume-from")
@@ -549,9 +552,9 @@ def run_states(cfg) -> list:
 def status(args: argparse.Namespace) -> int:
     """Every run of the preset and the next slot; with ``carry`` (``args.write_carry``), every run that trained here
     written into ``carry/<preset>/`` too (``scripts/gpu_carry.py``), the slot's with the moments it plans."""
-    from scripts.gpu_carry import parked_size, preset_carry, write_carry
-    from scripts.gpu_plan import FOLDER_BYTES, next_slot
-    from scripts.gpu_slots import CARRY_BYTES, mib, travelling_bytes, tree_bytes
+    from scripts.gpu_carry import preset_carry, write_carry
+    from scripts.gpu_plan import next_slot
+    from scripts.gpu_slots import CARRY_BYTES, mib, travelling_bytes
     from scripts.gpu_travel import is_light, light_bytes
 
     cfg = load_cfg(args)
@@ -560,29 +563,18 @@ def status(args: argparse.Namespace) -> int:
     for r in rows:
         print(f"{r.label:<{width}}  {r.text}" + (f" ({mib(r.size)} here)" if r.size else ""))
     carry_dir = preset_carry(args.carry_dir, cfg.preset)
-    # as the call travels: light (scripts/gpu_travel.py), the shipped weights and the docs left here
+    # as the call travels: light (scripts/gpu_travel.py), the shipped weights, the docs and the carried runs of no
+    # slot left here; the room is what the code and .whl/ leave of the call's 64 MiB
     light = is_light(ROOT)
     tree = travelling_bytes(ROOT, leave_out=carry_dir) - (0 if light else light_bytes(ROOT))
     if light:
         print("  travelling light now (weights/ and docs/ out of git's index, commits refused): once the device "
               "call is done, python3 scripts/gpu.py travel full")
-    # kept in the carry but not for this slot: finished runs (their weights until a commit lets carry stow them in
-    # git's history), and runs trained on a CPU, counted as they will be once finished and stowed (a CPU run goes
-    # on in the next session; GPU slots are rare, so they do not wait for it)
-    others = [r for r in rows if r.folder is not None and (r.state == "done" or r.run.model in cfg.train.cpu_models)]
-    carried = {r.label: carry_dir / r.label for r in others if (carry_dir / r.label / "done.json").exists()}
-    kept = sum(tree_bytes(carried[r.label]) if r.label in carried else FOLDER_BYTES if r.state != "done"
-               else parked_size(cfg, r, "done") for r in others)
-    for r in others:
-        if r.state != "done":
-            print(f"  ({r.label}, on a CPU, is counted as it will be once finished and its weights stowed; its "
-                  f"state now, {mib(parked_size(cfg, r, 'bf16'))}, must be finished before the slot after next)")
-    room = CARRY_BYTES - tree - kept
+    room = CARRY_BYTES - tree
     slot = next_slot(cfg, [r for r in rows if r.run.model not in cfg.train.cpu_models or r.state == "not started"],
-                     room, args.carry_moments, args.deadline_s, args.reserve_s, kept)
+                     room, args.carry_moments, args.deadline_s, args.reserve_s)
     print(f"next slot carries {len(slot.carry)} unfinished runs, {mib(sum(slot.sizes.values()))} of the "
-          f"{mib(room)} a call leaves beside the working tree travelling light and .whl/ ({mib(tree)}) and the "
-          f"rest of the carry ({mib(kept)})"
+          f"{mib(room)} a call leaves beside the working tree travelling light and .whl/ ({mib(tree)})"
           + (f"; {', '.join(slot.no_room)} wait for a later slot (no room)" if slot.no_room else ""))
     for r in slot.carry:
         print(f"  carries: {r.label:<{width}}  last.* with {slot.moments[r.label]} moments")
@@ -599,7 +591,7 @@ def status(args: argparse.Namespace) -> int:
     if all(r.state == "done" for r in rows):
         print(f"  every run is done: vitfly reproduce --config {args.config} --preset {cfg.preset} flies them")
     if getattr(args, "write_carry", False):
-        write_carry(cfg, rows, slot, carry_dir, CARRY_BYTES - tree)
+        write_carry(cfg, rows, slot, carry_dir, room)
     if not (slot.carry or slot.start):
         return 0
     here = carry_dir.relative_to(ROOT) if carry_dir.is_relative_to(ROOT) else carry_dir
@@ -609,8 +601,15 @@ def status(args: argparse.Namespace) -> int:
     flags = [f"--deadline-s {args.deadline_s:g}"] if args.deadline_s != DEADLINE_S else []
     flags += [f"--reserve-s {args.reserve_s:g}"] if args.reserve_s != RESERVE_S else []
     flags += [f"--moments {args.moments}"] if args.moments != "fp32" else []
-    print("  then, right before the call: python3 scripts/gpu.py travel light (weights/ and docs/ stay here; "
-          "right after it: travel full)")
+    # every carried run but the slot's stays here: no room taken, and `train --resume-from` does not resume it
+    travelling = {r.label for r in slot.carry}
+    carried_here = [r for r in rows if (carry_dir / r.label).exists() or (r.folder is not None and (
+        r.state == "done" or r.run.model in cfg.train.cpu_models))]  # in carry/, or once `carry` has run
+    stay = [(carry_dir / r.label).relative_to(ROOT).as_posix() for r in carried_here
+            if r.label not in travelling and (carry_dir / r.label).resolve().is_relative_to(ROOT)]
+    print("  then, right before the call (weights/, docs/ and the carried runs of no slot stay here; right after "
+          "it: python3 scripts/gpu.py travel full):\n    python3 scripts/gpu.py travel light"
+          + (f" --leave {' '.join(stay)}" if stay else ""))
     print(f"  carry: {json.dumps(['.whl'])} ({here}/ travels with the working tree)\n  command: python3 "
           f"scripts/gpu.py train --preset {cfg.preset} --out $OUT --expect-data-hash {data_hash}"
           + (f" --resume-from {here}" if slot.carry else "")

@@ -11,6 +11,9 @@ are about 51 MiB):
     python3 scripts/gpu.py travel full    # here, right after it: back as they were
     python3 scripts/gpu.py travel         # which it is now, and what a call would send
 
+``--leave PATH ...`` leaves more tracked folders behind: ``gpu.py status`` names the carried runs that do not go
+to the slot (runs trained on a CPU, finished ones), so that they take no room and the slot does not resume them.
+
 ``light`` takes the folders out of git's index (their files stay on disk, unchanged) and has git ignore them
 (``.git/info/exclude``), so the checkout sends the rest; ``full`` puts them back into the index from ``HEAD`` and
 ends both. Nothing is committed either way. While light, a commit would delete the folders from the project:
@@ -59,17 +62,38 @@ def is_light(root: Path) -> bool:
     return BEGIN in exclude_lines(root)
 
 
-def light_bytes(root: Path) -> int:
-    """What the ``LIGHT`` folders' tracked files weigh: what travelling light leaves behind."""
-    listed = git(root, "ls-files", "-z", "--", *LIGHT).stdout.split("\0")
+def left_paths(root: Path) -> list[str]:
+    """The folders travelling light leaves behind now (as ``light`` wrote them into the exclusion)."""
+    lines = exclude_lines(root)
+    if BEGIN not in lines:
+        return []
+    block = lines[lines.index(BEGIN) + 1 : lines.index(END) if END in lines else len(lines)]
+    return [line.strip("/") for line in block if line.strip("/")]
+
+
+def light_bytes(root: Path, leave: tuple[str, ...] | list[str] = ()) -> int:
+    """What the ``LIGHT`` folders' and ``leave``'s tracked files weigh: what travelling light leaves behind."""
+    listed = git(root, "ls-files", "-z", "--", *LIGHT, *leave).stdout.split("\0")
     return sum((root / f).stat().st_size for f in listed if f and (root / f).is_file())
 
 
-def light(root: Path) -> None:
-    """``LIGHT`` out of the index and ignored, the commit guard installed; nothing else changes."""
+def checked_leave(root: Path, leave: tuple[str, ...] | list[str]) -> list[str]:
+    """``leave`` as folders relative to the checkout, each inside it (one line naming a path that is not)."""
+    out = []
+    for path in leave:
+        full_path = (root / path).resolve()
+        if not full_path.is_relative_to(root.resolve()) or full_path == root.resolve():
+            raise SystemExit(f"--leave {path}: not a folder inside {root}")
+        out.append(full_path.relative_to(root.resolve()).as_posix())
+    return out
+
+
+def light(root: Path, leave: tuple[str, ...] | list[str] = ()) -> None:
+    """``LIGHT`` and ``leave`` out of the index and ignored, the commit guard installed; nothing else changes."""
     if is_light(root):
-        print(f"{root}: already travelling light")
+        print(f"{root}: already travelling light, leaving {', '.join(left_paths(root))} here")
         return
+    paths = list(dict.fromkeys([*LIGHT, *checked_leave(root, leave)]))
     if git(root, "diff", "--cached", "--quiet", check=False).returncode != 0:
         raise SystemExit(f"{root}: staged changes in git's index; commit or unstage them before travelling light "
                          "(it changes the index, and `travel full` restores it from HEAD)")
@@ -77,13 +101,13 @@ def light(root: Path) -> None:
     if hook.exists() and HOOK_TAG not in hook.read_text():
         raise SystemExit(f"{hook}: a pre-commit hook of this checkout's own; travelling light needs that place "
                          "for its guard (a commit while light would delete the folders it leaves behind)")
-    tracked = [d for d in LIGHT if git(root, "ls-files", "--", d).stdout.strip()]
+    tracked = [d for d in paths if git(root, "ls-files", "--", d).stdout.strip()]
     if not tracked:
-        raise SystemExit(f"{root}: none of {', '.join(LIGHT)} is tracked here; nothing to leave behind")
+        raise SystemExit(f"{root}: none of {', '.join(paths)} is tracked here; nothing to leave behind")
     exclude = git_path(root, "info/exclude")
     exclude.parent.mkdir(parents=True, exist_ok=True)
     kept = exclude_lines(root)
-    exclude.write_text("\n".join([*kept, BEGIN, *(f"/{d}/" for d in LIGHT), END]) + "\n")  # marks it light first
+    exclude.write_text("\n".join([*kept, BEGIN, *(f"/{d}/" for d in paths), END]) + "\n")  # marks it light first
     try:
         hook.parent.mkdir(parents=True, exist_ok=True)
         hook.write_text(HOOK)
@@ -99,7 +123,7 @@ def full(root: Path) -> None:
     if not is_light(root):
         print(f"{root}: travelling full already")
         return
-    git(root, "reset", "-q", "--", *LIGHT)
+    git(root, "reset", "-q", "--", *left_paths(root))
     lines = exclude_lines(root)
     start, end = lines.index(BEGIN), lines.index(END) if END in lines else len(lines) - 1
     git_path(root, "info/exclude").write_text("".join(f"{line}\n" for line in lines[:start] + lines[end + 1:]))
@@ -112,14 +136,16 @@ def travel(args: argparse.Namespace) -> int:
     from scripts.gpu_slots import CARRY_BYTES, mib, travelling_bytes
 
     root = Path(args.root)
+    if args.leave and args.mode != "light":
+        raise SystemExit("--leave goes with `travel light`")
     if args.mode == "light":
-        light(root)
+        light(root, args.leave)
     elif args.mode == "full":
         full(root)
     sends = travelling_bytes(root)
     if is_light(root):
-        print(f"travelling light: a device call sends {mib(sends)} of its {mib(CARRY_BYTES)} ({', '.join(LIGHT)} "
-              "stay here); after the call: python3 scripts/gpu.py travel full")
+        print(f"travelling light: a device call sends {mib(sends)} of its {mib(CARRY_BYTES)} "
+              f"({', '.join(left_paths(root))} stay here); after the call: python3 scripts/gpu.py travel full")
     else:
         over = " (over: the device tool would refuse the call)" if sends > CARRY_BYTES else ""
         print(f"travelling full: a device call sends {mib(sends)} of its {mib(CARRY_BYTES)}{over}; light it would "
@@ -131,5 +157,7 @@ def add_commands(sub) -> dict:
     t = sub.add_parser("travel", help="here: leave weights/ and docs/ out of what a device call sends (light), or "
                                       "send them again (full); without a mode, which it is now")
     t.add_argument("mode", nargs="?", choices=("light", "full"))
+    t.add_argument("--leave", nargs="+", default=[], metavar="PATH",
+                   help="light: more tracked folders to leave here (status names the carried runs of no slot)")
     t.add_argument("--root", default=str(ROOT), help="the checkout (default: this one)")
     return {"travel": travel}

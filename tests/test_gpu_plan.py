@@ -187,14 +187,3 @@ def test_what_a_call_sends_beside_its_carry(tmp_path):
     assert travelling_bytes(repo) == 1000 + 300 + 13 + 50
     with pytest.raises(SystemExit, match="not a git checkout"):
         travelling_bytes(plain)
-
-
-def test_a_large_run_waits_for_what_the_carry_keeps_for_other_runs():
-    """10 MiB kept in carry/ for runs that do not go to the slot leave 33,554,432 - 10,485,760 = 23,068,672 bytes:
-    ViT+LSTM (28,705,912 with bf16 moments) and UNet+LSTM (2,955,822 x 8 + 196,608 = 23,843,184) would fit the
-    whole room, so they wait for those runs rather than train alone."""
-    cfg = preset("paper")
-    slot = next_slot(cfg, rows(cfg), ROOM - 10 * 2**20, kept_bytes=10 * 2**20)
-    assert slot.start == [] and slot.alone is None
-    for label in ("vit_lstm-state", "unet_lstm-state"):
-        assert "beside what carry/ keeps for other runs (10.0 MiB); finish those first" in slot.wait[label]

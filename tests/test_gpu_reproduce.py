@@ -315,6 +315,18 @@ def test_runs_outlive_the_session_in_the_carry(tmp_path, data, two_epochs, capsy
     marker = json.loads((kept / "convnet-nostate" / "unfinished.json").read_text())  # written for the CPU run
     assert (marker["epochs"], marker["max_epochs"], marker["slots"][0]["device"]) == (1, 2, "cpu")
     assert marker["dataset_hash"] == dataset_fingerprint(data)["dataset_hash"]
+    # a preset that trains ConvNet on a CPU: a slot does not resume its carried runs unless --runs names them
+    config = yaml.safe_load(two_epochs.read_text())
+    config["presets"]["tiny"]["train"]["cpu_models"] = ["convnet"]
+    cpu_convnet = tmp_path / "cpu_convnet.yaml"
+    cpu_convnet.write_text(yaml.safe_dump(config))
+    capsys.readouterr()
+    with pytest.raises(SystemExit, match="nothing to train"):
+        gpu.main(["train", "--config", str(cpu_convnet), "--preset", "tiny", "--data", str(data), "--run-dir",
+                  str(tmp_path / "gpu_cpu"), "--out", str(tmp_path / "back_cpu"), *slot, "--resume-from", str(kept)])
+    skipped = capsys.readouterr().out
+    assert all(f"{label}: trains on a CPU (train.cpu_models); not resumed here" in skipped
+               for label in ("convnet-state", "convnet-nostate"))
     stranger = tmp_path / "not_a_carry"
     (stranger / "tiny" / "notes").mkdir(parents=True)
     with pytest.raises(SystemExit, match="holds notes, not carried runs; nothing written"):

@@ -98,3 +98,21 @@ def test_the_travel_command_says_what_a_call_sends(checkout, capsys):
     assert "travelling light" in capsys.readouterr().out and gpu_travel.is_light(checkout)
     assert gpu.main(["travel", "full", "--root", str(checkout)]) == 0
     assert "travelling full" in capsys.readouterr().out and not gpu_travel.is_light(checkout)
+
+
+def test_light_leaves_more_folders_when_asked_and_full_brings_them_back(checkout):
+    """``--leave``: a carried run's folder (tracked, 400 bytes) stays here too; a path outside the checkout is
+    refused before anything changes."""
+    (checkout / "carry" / "run").mkdir(parents=True)
+    (checkout / "carry" / "run" / "state.bin").write_bytes(b"s" * 400)
+    git(checkout, "add", "carry")
+    git(checkout, "commit", "-qm", "carry")
+    with pytest.raises(SystemExit, match="not a folder inside"):
+        gpu_travel.light(checkout, ["../elsewhere"])
+    assert not gpu_travel.is_light(checkout)
+    gpu_travel.light(checkout, ["carry/run"])
+    assert gpu_travel.left_paths(checkout) == ["weights", "docs", "carry/run"]
+    assert travelling_bytes(checkout) == 100
+    gpu_travel.full(checkout)
+    assert git(checkout, "status", "--porcelain").stdout == " M docs/a.md\n"
+    assert travelling_bytes(checkout) == 100 + 5000 + 650 + 2000 + 400
