@@ -180,3 +180,50 @@ def test_datamodule_mirrors_training_batches_only(tmp_path):
 def test_bad_probability_is_one_line(tmp_path):
     with pytest.raises(VitflyError, match=r"data.mirror_prob: expected a probability in \[0, 1\], got 1.5"):
         TrajectoryDataModule(str(tmp_path / "x.h5"), mirror_prob=1.5)
+
+
+def test_coins_drawn_on_the_host_mirror_a_batch_on_the_device_without_reading_it_back(tmp_path):
+    """The datamodule draws a training batch's coins before the batch leaves the host; mirroring with them
+    needs nothing back from the device: here a batch on the meta device (no data, only shapes), whose
+    ``traj_index`` cannot be read (drawing the coins from it raises), is mirrored all the same."""
+    coins = mirror_coins(torch.tensor([3, 1, 4]), torch.tensor([0, 8, 0]), 0.5, seed=0, epoch=2)
+    batch = {"depth": torch.zeros(3, 5, 1, 6, 9), "quat": torch.zeros(3, 5, 4), "velocity_cmd": torch.zeros(3, 5, 3),
+             "traj_index": torch.tensor([3, 1, 4]), "start": torch.tensor([0, 8, 0])}
+    on_meta = {k: v.to("meta") for k, v in batch.items()}
+    with pytest.raises(NotImplementedError):
+        random_mirror(on_meta, 0.5, seed=0, epoch=2)
+    mirrored = random_mirror(on_meta, 0.5, seed=0, epoch=2, coins=coins)
+    assert mirrored["depth"].is_meta and mirrored["depth"].shape == (3, 5, 1, 6, 9)
+    # through a real fit of 2 epochs at p = 0.5: each training item mirrored as its own coin (seed 0, its epoch,
+    # trajectory and start) says, the coins drawn on the host before the trip
+    path = write_dataset(tmp_path / "d.h5", [6, 9, 4, 7, 5])
+    ds = TrajectoryDataset(path)
+    had_coins = []
+
+    class Watched(TrajectoryDataModule):  # what reaches the device side of the trip
+        def on_after_batch_transfer(self, batch, dataloader_idx):
+            had_coins.append(("mirror_host" in batch, self.trainer.training))
+            return super().on_after_batch_transfer(batch, dataloader_idx)
+
+    dm = Watched(path, batch_size=2, val_fraction=0.4, mirror_prob=0.5, split_seed=0)
+    seen = []
+
+    class Record(L.Callback):
+        def on_train_batch_start(self, trainer, pl_module, batch, batch_idx):
+            seen.append((trainer.current_epoch, {k: v.clone() for k, v in batch.items()}))
+
+    trainer = L.Trainer(max_epochs=2, logger=False, enable_checkpointing=False, enable_progress_bar=False,
+                        enable_model_summary=False, default_root_dir=tmp_path, callbacks=[Record()],
+                        num_sanity_val_steps=0)
+    trainer.fit(create_policy("convnet", warmup_epochs=0, tbptt_steps=None), datamodule=dm)
+    flips = []
+    for epoch, got in seen:
+        assert "mirror_host" not in got  # used up by the mirroring, not handed to the module
+        expected = mirror_coins(got["traj_index"], torch.zeros_like(got["traj_index"]), 0.5, 0, epoch)
+        for i, m in enumerate(got["traj_index"].tolist()):
+            depth = ds[m]["depth"].float()[:, None] / 255.0
+            n = depth.shape[0]
+            flips.append(bool(expected[i]))
+            torch.testing.assert_close(got["depth"][i, :n], depth.flip(-1) if expected[i] else depth)
+    assert len(seen) == 4 and True in flips and False in flips  # 3 training trajectories, 2 batches, 2 epochs
+    assert set(had_coins) == {(True, True), (False, False)}  # coins with every training batch, none in validation

@@ -42,7 +42,7 @@ def mirror_items(batch: dict[str, torch.Tensor], flip: torch.Tensor) -> dict[str
     out = dict(batch)
     if not bool(flip.any()):
         return out
-    idx = flip.nonzero().flatten()
+    idx = flip.nonzero().flatten().to(batch["depth"].device, non_blocking=True)
     depth = batch["depth"].clone()
     depth[idx] = depth[idx].flip(-1)
     out["depth"] = depth
@@ -68,9 +68,19 @@ def mirror_coins(traj_index: torch.Tensor, start: torch.Tensor, prob: float, see
     return item_coins(traj_index, start, prob, seed, epoch)
 
 
-def random_mirror(batch: dict[str, torch.Tensor], prob: float, seed: int, epoch: int) -> dict[str, torch.Tensor]:
-    """Mirror each item of the batch with probability ``prob`` (see ``mirror_coins``)."""
+def random_mirror(batch: dict[str, torch.Tensor], prob: float, seed: int, epoch: int,
+                  coins: torch.Tensor | None = None) -> dict[str, torch.Tensor]:
+    """Mirror each item of the batch with probability ``prob`` (see ``mirror_coins``). ``coins``: the batch's
+    ``mirror_coins`` drawn already (on the host, before the batch went to a device, so that drawing them here
+    does not wait for the device to hand its ``traj_index`` back)."""
     if prob <= 0.0:
         return batch
+    if coins is None:
+        coins = batch_coins(batch, prob, seed, epoch)
+    return mirror_items(batch, coins)
+
+
+def batch_coins(batch: dict[str, torch.Tensor], prob: float, seed: int, epoch: int) -> torch.Tensor:
+    """``mirror_coins`` of a batch's items (its ``traj_index`` and window ``start``; 0 without one)."""
     start = batch.get("start", torch.zeros_like(batch["traj_index"]))
-    return mirror_items(batch, mirror_coins(batch["traj_index"], start, prob, seed, epoch))
+    return mirror_coins(batch["traj_index"], start, prob, seed, epoch)

@@ -24,9 +24,11 @@ from lightning.pytorch.utilities import rank_zero_info
 from torch.utils.data import DataLoader, Sampler
 
 from vitfly.atomic import write_text
-from vitfly.datamodules.augment import check_mirror_prob, random_mirror
+from vitfly.datamodules.augment import batch_coins, check_mirror_prob, random_mirror
 from vitfly.datamodules.dataset import (
+    HOST_KEYS,
     HOST_LENGTHS,
+    HOST_MIRROR,
     TrajectoryDataset,
     check_time_bucket,
     collate_trajectories,
@@ -400,17 +402,20 @@ class TrajectoryDataModule(L.LightningDataModule):
         )
 
     def on_before_batch_transfer(self, batch: dict, dataloader_idx: int) -> dict:
+        # what the host will need of the batch, taken while it is here: read back from a device, each would wait
+        # for every step queued before it
         if "depth" not in batch and "length" in batch:  # a resident batch: its lengths stay on the host too
             batch[HOST_LENGTHS] = batch["length"]
+        trainer = self.trainer
+        if self.mirror_prob > 0.0 and trainer is not None and trainer.training:
+            batch[HOST_MIRROR] = batch_coins(batch, self.mirror_prob, self.split_seed, trainer.current_epoch)
         return batch
 
     def transfer_batch_to_device(self, batch: Any, device: torch.device, dataloader_idx: int) -> Any:
-        """Every tensor to ``device`` but ``HOST_LENGTHS``, which is there to stay on the host."""
-        host = batch.pop(HOST_LENGTHS, None) if isinstance(batch, dict) else None
+        """Every tensor to ``device`` but those of ``HOST_KEYS``, which are there to stay on the host."""
+        host = {k: batch.pop(k) for k in HOST_KEYS if k in batch} if isinstance(batch, dict) else {}
         batch = super().transfer_batch_to_device(batch, device, dataloader_idx)
-        if host is not None:
-            batch[HOST_LENGTHS] = host
-        return batch
+        return {**batch, **host} if host else batch
 
     def on_after_batch_transfer(self, batch: dict, dataloader_idx: int) -> dict:
         if "depth" not in batch and "length" in batch:  # a resident batch: indices only, gathered here
@@ -420,8 +425,9 @@ class TrajectoryDataModule(L.LightningDataModule):
         # the one place augmentation happens: training batches only, once the batch holds its depth
         # (streamed or gathered from the resident copy)
         trainer = self.trainer
+        coins = batch.pop(HOST_MIRROR, None)
         if self.mirror_prob > 0.0 and trainer is not None and trainer.training:
-            batch = random_mirror(batch, self.mirror_prob, self.split_seed, trainer.current_epoch)
+            batch = random_mirror(batch, self.mirror_prob, self.split_seed, trainer.current_epoch, coins)
         if self.sensor_prob > 0.0 and trainer is not None and trainer.training:
             batch = self.sensor_randomisation()(batch, self.split_seed, trainer.current_epoch)
         fitting = trainer is not None and (trainer.training or trainer.validating or trainer.sanity_checking)

@@ -24,6 +24,9 @@ TRAINING_FIELDS = ("depth", "desired_speed", "quat", "velocity_cmd")
 # optional batch key: each row's valid steps, (B,) int64 kept on the host while the other tensors go to the
 # device (resident batches), so that the batch's shape and its TBPTT chunks need not wait for the device
 HOST_LENGTHS = "lengths_host"
+# optional batch key: a training batch's mirror coins, (B,) bool drawn on the host before the trip to the device
+HOST_MIRROR = "mirror_host"
+HOST_KEYS = (HOST_LENGTHS, HOST_MIRROR)  # what ``transfer_batch_to_device`` leaves on the host
 
 
 class TrajectoryCache:
