@@ -107,6 +107,12 @@ def finishes(r: RunState, train_s: float) -> bool:
     return per_slot is not None and 0 < left <= per_slot
 
 
+def carried_moments(r: RunState, moments: str) -> tuple[str, ...]:
+    """The precisions an unfinished run's moments may travel in, best first: bf16 alone for a run restored from
+    a carry in bf16 (its moments are bf16's values already: fp32 would carry them no better)."""
+    return ("bf16",) if r.marker.get("carried_moments") == "bf16" else MOMENTS[moments]
+
+
 def next_slot(cfg, rows: list[RunState], carry_bytes: int, moments: str = "auto",
               deadline_s: float = 560.0, reserve_s: float = 40.0) -> Slot:
     """The next slot for the runs ``rows`` (every run of the preset, as ``run_states`` lists them); ``carry_bytes``:
@@ -121,19 +127,18 @@ def next_slot(cfg, rows: list[RunState], carry_bytes: int, moments: str = "auto"
     # (fp32) moments where the room still holds them: a second run carried beats the first carried exactly
     carried = 0
     for r in sorted((r for r in rows if r.state == "unfinished"), key=lambda r: slot_rank(cfg, r.run)):
-        # restored from a carry in bf16, its moments are bf16's values already: fp32 would carry them no better
-        allowed = ("bf16",) if r.marker.get("carried_moments") == "bf16" else MOMENTS[moments]
-        size = state_bytes(cfg, r.run, allowed[-1])
+        smallest = carried_moments(r, moments)[-1]
+        size = state_bytes(cfg, r.run, smallest)
         if carried + size > carry_bytes:
             slot.no_room.append(r.label)
             continue
         slot.carry.append(r)
-        slot.moments[r.label], slot.sizes[r.label] = allowed[-1], size
+        slot.moments[r.label], slot.sizes[r.label] = smallest, size
         carried += size
         slot.back_bytes += 0 if finishes(r, train_s) else state_bytes(cfg, r.run, MOMENTS[moments][-1])
     for r in slot.carry:
-        allowed = ("bf16",) if r.marker.get("carried_moments") == "bf16" else MOMENTS[moments]
-        best = next(m for m in allowed if carried - slot.sizes[r.label] + state_bytes(cfg, r.run, m) <= carry_bytes)
+        best = next(m for m in carried_moments(r, moments)
+                    if carried - slot.sizes[r.label] + state_bytes(cfg, r.run, m) <= carry_bytes)
         carried += state_bytes(cfg, r.run, best) - slot.sizes[r.label]
         slot.moments[r.label], slot.sizes[r.label] = best, state_bytes(cfg, r.run, best)
     for r in sorted((r for r in rows if r.state == "not started"), key=lambda r: slot_rank(cfg, r.run)):

@@ -58,17 +58,25 @@ def exclude_lines(root: Path) -> list[str]:
     return path.read_text().splitlines() if path.exists() else []
 
 
+def light_block(lines: list[str]) -> tuple[int, int] | None:
+    """Where ``light``'s lines sit in the exclude file: the indices of ``BEGIN`` and of ``END`` (or of the last
+    line, if someone cut the end); None when the checkout travels full."""
+    if BEGIN not in lines:
+        return None
+    return lines.index(BEGIN), lines.index(END) if END in lines else len(lines) - 1
+
+
 def is_light(root: Path) -> bool:
-    return BEGIN in exclude_lines(root)
+    return light_block(exclude_lines(root)) is not None
 
 
 def left_paths(root: Path) -> list[str]:
     """The folders travelling light leaves behind now (as ``light`` wrote them into the exclusion)."""
     lines = exclude_lines(root)
-    if BEGIN not in lines:
+    block = light_block(lines)
+    if block is None:
         return []
-    block = lines[lines.index(BEGIN) + 1 : lines.index(END) if END in lines else len(lines)]
-    return [line.strip("/") for line in block if line.strip("/")]
+    return [line.strip("/") for line in lines[block[0] + 1 : block[1] + 1] if line.strip("/") and line != END]
 
 
 def light_bytes(root: Path, leave: tuple[str, ...] | list[str] = ()) -> int:
@@ -125,7 +133,7 @@ def full(root: Path) -> None:
         return
     git(root, "reset", "-q", "--", *left_paths(root))
     lines = exclude_lines(root)
-    start, end = lines.index(BEGIN), lines.index(END) if END in lines else len(lines) - 1
+    start, end = light_block(lines)
     git_path(root, "info/exclude").write_text("".join(f"{line}\n" for line in lines[:start] + lines[end + 1:]))
     hook = git_path(root, "hooks/pre-commit")
     if hook.exists() and HOOK_TAG in hook.read_text():
