@@ -205,7 +205,9 @@ def pack(staged: list[tuple[str, Path]], out: Path, work: Path, budget: int) -> 
 
 def resume_sources(paths: list[str], preset: str) -> dict[str, tuple[Path, dict]]:
     """label -> (run folder, its unfinished.json) for each ``--resume-from`` folder: a run folder, or a folder
-    of run folders (those with a done.json are finished: they are not resumed)."""
+    of run folders (those with a done.json are finished: they are not resumed). A run found in several goes on
+    from the state with the most epochs (on a tie, the folder named last): a follow-on call's own run folder
+    beside the carry it started from."""
     from scripts.gpu_slots import MARKER, read_marker
 
     found: dict[str, tuple[Path, dict]] = {}
@@ -224,7 +226,12 @@ def resume_sources(paths: list[str], preset: str) -> dict[str, tuple[Path, dict]
             if marker["preset"] != preset:
                 raise SystemExit(f"{folder / MARKER}: preset {marker['preset']!r}, not --preset {preset!r}")
             parse_label(marker["label"])
-            found[marker["label"]] = (folder, marker)
+            label = marker["label"]
+            if label in found and found[label][1]["epochs"] > marker["epochs"]:
+                log(f"{folder}: {label} at {marker['epochs']} epochs; goes on from {found[label][0]} "
+                    f"({found[label][1]['epochs']} epochs)")
+                continue
+            found[label] = (folder, marker)
     return found
 
 
@@ -307,7 +314,8 @@ def wait_runs(procs: dict, deadline: float) -> dict[str, tuple[int | None, float
 def stage_run(cfg, label: str, ended: tuple, resumed: dict, data_hash: str, args,
               work: Path) -> tuple[dict, Path | None]:
     """What one run did this slot (the report's entry), and its folder staged for the trip back (or None)."""
-    from scripts.gpu_slots import epochs_done, steady_epoch_s
+    from scripts.gpu_slots import MARKER, epochs_done, steady_epoch_s
+    from vitfly.atomic import write_text
     from vitfly.workflows.reproduce_config import train_stage
 
     d = run_dir(cfg, label)
@@ -336,6 +344,8 @@ def stage_run(cfg, label: str, ended: tuple, resumed: dict, data_hash: str, args
               "dataset_hash": data_hash, "moments": args.moments, **steady, "slots": [*marker["slots"], slot]}
     entry.update(state="unfinished", max_epochs=marker["max_epochs"])
     stage_unfinished(d, dst, marker, args.moments)
+    # the run folder here says so too: a follow-on call on this machine (--go-on) resumes it from its full state
+    write_text(d / MARKER, json.dumps({**marker, "moments": "fp32"}, indent=1) + "\n")
     return entry, dst
 
 
@@ -385,7 +395,11 @@ def train(args: argparse.Namespace) -> int:
     shutil.rmtree(work / "stage", ignore_errors=True)
     work.mkdir(parents=True, exist_ok=True)
     cfg = load_cfg(args)
-    resumed = resume_sources(args.resume_from, args.preset)
+    here = cfg.out_dir / "train"  # an earlier call's runs, on a machine still warm from it
+    if args.go_on and not here.is_dir():
+        log(f"--go-on: no earlier call's runs in {here} (a fresh machine); resumes from --resume-from alone")
+    resumed = resume_sources([*args.resume_from, *([str(here)] if args.go_on and here.is_dir() else [])],
+                             args.preset)
     for label in [k for k in resumed if parse_label(k).model in cfg.train.cpu_models and k not in args.runs]:
         log(f"{label}: trains on a CPU (train.cpu_models); not resumed here (name it in --runs to)")
         del resumed[label]
@@ -610,11 +624,14 @@ def status(args: argparse.Namespace) -> int:
     print("  then, right before the call (weights/, docs/ and the carried runs of no slot stay here; right after "
           "it: python3 scripts/gpu.py travel full):\n    python3 scripts/gpu.py travel light"
           + (f" --leave {' '.join(stay)}" if stay else ""))
-    print(f"  carry: {json.dumps(['.whl'])} ({here}/ travels with the working tree)\n  command: python3 "
-          f"scripts/gpu.py train --preset {cfg.preset} --out $OUT --expect-data-hash {data_hash}"
-          + (f" --resume-from {here}" if slot.carry else "")
-          + (f" --runs {' '.join(r.label for r in slot.start)}" if slot.start else "")
+    command = (f"python3 scripts/gpu.py train --preset {cfg.preset} --out $OUT --expect-data-hash {data_hash}"
+               + (f" --resume-from {here}" if slot.carry else "")
+               + (f" --runs {' '.join(r.label for r in slot.start)}" if slot.start else ""))
+    print(f"  carry: {json.dumps(['.whl'])} ({here}/ travels with the working tree)\n  command: {command}"
           + "".join(" " + f for f in flags))
+    print("  then at once, while the machine is warm (30 s), a follow-on call for what the lease has left "
+          "(timeout_s T: its budget_left_s less 30 s), resuming the runs where the first call left them there:"
+          f"\n    {command} --go-on --deadline-s $((T - 10 - SECONDS))")
     return 0
 
 
@@ -629,6 +646,9 @@ def add_commands(sub) -> dict:
     t.add_argument("--runs", nargs="*", default=[], help="MODEL-state / MODEL-nostate labels")
     t.add_argument("--resume-from", nargs="*", default=[], metavar="DIR",
                    help="unfinished run folders (as unpack leaves them, carried here), or folders of them")
+    t.add_argument("--go-on", action="store_true",
+                   help="a follow-on call on a machine still warm from the last: resume its runs from their run "
+                        "folders there too, where they trained further than --resume-from's states")
     t.add_argument("--expect-data-hash", help="the dataset_hash the collected file must have")
     t.add_argument("--collect-workers", type=int, default=14)
     t.add_argument("--threads", type=int, default=2, help="torch threads per run")

@@ -397,6 +397,63 @@ def test_runs_outlive_the_session_in_the_carry(tmp_path, data, two_epochs, capsy
     assert not (tmp_path / "fourth" / "train").exists()
 
 
+def test_a_follow_on_call_on_the_warm_machine_goes_on_from_its_run_folders(tmp_path, data, two_epochs, capsys):
+    """What a lease leaves after the first 10-minute call trains on in a second call on the still-warm machine:
+    ``--go-on`` resumes each run from the first call's run folder there (its full state, exact), not from the
+    carry the first call started from; on a fresh machine it resumes from --resume-from alone."""
+    gpu = load_script("gpu")
+    common = ["--config", str(two_epochs), "--preset", "tiny", "--data", str(data)]
+    machine, home = tmp_path / "machine", tmp_path / "home"
+    call = ["train", *common, "--run-dir", str(machine), "--work", str(tmp_path / "work"), "--collect-workers", "1",
+            "--threads", "1", "--go-on"]
+    assert gpu.main([*call, "--out", str(tmp_path / "back1"), "--runs", "convnet-state",
+                     "--stop-after-epochs", "1"]) == 0
+    assert "no earlier call's runs" in capsys.readouterr().out
+    run = machine / "train" / "convnet-state"
+    marker = json.loads((run / "unfinished.json").read_text())  # the run folder there says where it stands
+    assert (marker["epochs"], marker["max_epochs"], marker["moments"], len(marker["slots"])) == (1, 2, "fp32", 1)
+    assert gpu.main(["unpack", *common, "--run-dir", str(home), str(tmp_path / "back1")]) == 0
+
+    # the follow-on call, with the first call's carry named too (as the slot's command has it): the machine's
+    # folder, named last, holds as many epochs and the full state
+    carried = home / "train" / "convnet-state"
+    assert gpu.main([*call, "--out", str(tmp_path / "back2"), "--resume-from", str(carried)]) == 0
+    report = json.loads((tmp_path / "back2" / "gpu_reproduce.json").read_text())
+    assert report["resumed"] == {"convnet-state": str(run)}
+    assert (report["runs"]["convnet-state"]["state"], report["runs"]["convnet-state"]["epochs"]) == ("finished", [1, 2])
+    cfg = load_reproduce_config(two_epochs, "tiny", {"data": str(data)})
+    stage, callbacks = train_callbacks(train_stage(cfg, "convnet", True), cfg, "test")
+    reference = tmp_path / "reference"
+    stage_train(stage, data, reference, 1, progress=False, callbacks=callbacks)
+    assert_same_training(reference / "checkpoints" / "last.ckpt", run / "checkpoints" / "last.ckpt")
+    with open(run / "metrics.csv") as f:  # both calls' epochs
+        assert [r["epoch"] for r in csv.DictReader(f) if r["val/loss"]] == ["0", "1"]
+
+    assert gpu.main(["unpack", *common, "--run-dir", str(home), str(tmp_path / "back2")]) == 0
+    done = json.loads((carried / "done.json").read_text())
+    assert (done["trained_on"]["epochs"], len(done["trained_on"]["slots"])) == (2, 2)
+
+
+def test_a_run_found_in_several_resume_folders_goes_on_from_its_most_epochs(tmp_path, capsys):
+    reproduce = load_script("gpu_reproduce")
+
+    def folder(name: str, epochs: int) -> Path:
+        d = tmp_path / name / "vit-state"
+        d.mkdir(parents=True)
+        marker = {"label": "vit-state", "preset": "paper", "dataset_hash": "53d8667a84fc34cc", "epochs": epochs,
+                  "slots": []}
+        (d / "unfinished.json").write_text(json.dumps(marker))
+        return d.parent
+
+    carry, machine, twin = folder("carry", 7), folder("machine", 19), folder("twin", 19)
+    for order in ([carry, machine], [machine, carry]):
+        found = reproduce.resume_sources([str(p) for p in order], "paper")
+        assert found["vit-state"][0] == machine / "vit-state" and found["vit-state"][1]["epochs"] == 19
+    assert f"{carry / 'vit-state'}: vit-state at 7 epochs; goes on from {machine / 'vit-state'} (19 epochs)" \
+        in capsys.readouterr().out
+    assert reproduce.resume_sources([str(machine), str(twin)], "paper")["vit-state"][0] == twin / "vit-state"
+
+
 def test_a_preset_that_flies_the_last_epoch_comes_home_without_a_best_checkpoint(tmp_path, data, two_epochs, capsys):
     """``select: last`` (the paper preset): a slot's run keeps no best.ckpt, there or here; unpacking places it
     all the same (it was refused once, for want of a best epoch to keep at home)."""
