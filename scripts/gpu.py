@@ -2,7 +2,8 @@
 
     wheels          here   the pure-Python wheels the machine lacks, into .whl/ (carry it)
     train           there  a `vitfly reproduce` preset's data collected, named runs trained until the deadline
-                           -> runs.tar.NNN, gpu_reproduce.json
+                           -> runs.tar.NNN, gpu_reproduce.json; --go-on: a follow-on call on the warm machine
+                           goes on from the first call's runs there
     status          here   every run of a preset (done, unfinished k/N, not started); the next slot (carry, runs)
     carry           here   status, and every run that trained here into carry/PRESET/ (commit it: runs outlive
                            the session there, and the next slot resumes from it)

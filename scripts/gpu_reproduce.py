@@ -18,7 +18,10 @@ There (the device machine, 16 cores and one GPU; at most 10 minutes a command; t
    with no epoch better than a best one it was carried without says so in its done.json. Every epoch ends in
    ``last.ckpt``; a run does not start an epoch that would end after the deadline (``--stop-after-epochs``
    stops it after that many), and one still running then is killed and goes on from its last epoch next time.
-   A run with a done.json is never trained again;
+   A run with a done.json is never trained again. ``--go-on`` makes a follow-on call on a machine still warm
+   from the last one (the device time a lease leaves after a 10-minute command): each run goes on from its
+   folder there (full state; the first call wrote its ``unfinished.json``) where that is further along than
+   the ``--resume-from`` state;
 3. the runs packed for the trip back as ``runs.tar.NNN`` (``scripts/gpu_pack.py``; at most ``--return-mib``,
    finished runs first):
    a finished run as metrics, split, cost, done.json and its best checkpoint without optimiser state (network
