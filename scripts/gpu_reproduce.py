@@ -615,8 +615,8 @@ def status(args: argparse.Namespace) -> int:
     if slot.carry and not getattr(args, "write_carry", False):
         print(f"  first, here: python3 scripts/gpu.py carry --preset {cfg.preset} (into {here}/, then commit)")
     data_hash = local_data_hash(cfg) if Path(cfg.data).exists() else "HASH"
-    flags = [f"--deadline-s {args.deadline_s:g}"] if args.deadline_s != DEADLINE_S else []
-    flags += [f"--reserve-s {args.reserve_s:g}"] if args.reserve_s != RESERVE_S else []
+    deadline = [f"--deadline-s {args.deadline_s:g}"] if args.deadline_s != DEADLINE_S else []
+    flags = [f"--reserve-s {args.reserve_s:g}"] if args.reserve_s != RESERVE_S else []
     flags += [f"--moments {args.moments}"] if args.moments != "fp32" else []
     # every carried run but the slot's stays here: no room taken, and `train --resume-from` does not resume it
     travelling = {r.label for r in slot.carry}
@@ -629,9 +629,10 @@ def status(args: argparse.Namespace) -> int:
           + (f" --leave {' '.join(stay)}" if stay else ""))
     command = (f"python3 scripts/gpu.py train --preset {cfg.preset} --out $OUT --expect-data-hash {data_hash}"
                + (f" --resume-from {here}" if slot.carry else "")
-               + (f" --runs {' '.join(r.label for r in slot.start)}" if slot.start else ""))
+               + (f" --runs {' '.join(r.label for r in slot.start)}" if slot.start else "")
+               + "".join(" " + f for f in flags))
     print(f"  carry: {json.dumps(['.whl'])} ({here}/ travels with the working tree)\n  command: {command}"
-          + "".join(" " + f for f in flags))
+          + "".join(" " + f for f in deadline))
     print("  then at once, while the machine is warm (30 s), a follow-on call for what the lease has left "
           "(timeout_s T: its budget_left_s less 30 s), resuming the runs where the first call left them there:"
           f"\n    {command} --go-on --deadline-s $((T - 10 - SECONDS))")

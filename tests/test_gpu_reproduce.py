@@ -188,6 +188,9 @@ def test_a_run_stopped_in_one_slot_resumes_in_the_next_exactly(tmp_path, data, t
     assert re.search(r"next slot carries 1 unfinished runs, 47\.8 MiB of the \d+\.\d MiB a call leaves", listing)
     assert re.search(r"carries: vit_lstm-state +last\.\* with fp32 moments", listing)
     assert "travel light" in listing
+    follow_on = re.search(r"\n +(python3 scripts/gpu\.py train .*) --go-on --deadline-s \$\(\(T - 10 - SECONDS\)\)\n",
+                          listing)
+    assert follow_on and f"  command: {follow_on.group(1)}\n" in listing  # the first call's, and --go-on
 
     # a resume state of other data is refused before anything trains
     bad = tmp_path / "bad" / "vit_lstm-state"
