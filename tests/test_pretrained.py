@@ -103,27 +103,24 @@ def test_tampered_missing_and_mismatched_files_are_one_line(tmp_path):
         save_pretrained(ckpt, "../x", {}, weights)
 
 
-def test_cli_evaluates_and_exports_pretrained_weights(tmp_path):
+def test_cli_evaluates_and_exports_pretrained_weights(tmp_path, monkeypatch, capsys):
+    from vitfly.cli import main
+
     _, ckpt = random_checkpoint(tmp_path, "convnet")
     weights = tmp_path / "weights"
     save_pretrained(ckpt, "convnet", {"preset": "test"}, weights)
-    env = {**__import__("os").environ, "VITFLY_WEIGHTS_DIR": str(weights)}
+    monkeypatch.setenv("VITFLY_WEIGHTS_DIR", str(weights))
     out = tmp_path / "eval"
-    run = subprocess.run(
-        [sys.executable, "-m", "vitfly.cli", "evaluate", "--policy", "pretrained:convnet", "--speeds", "7",
-         "--trials", "1", "--out", str(out), "--no-gif", "--no-plots", "--no-progress", "--timeout", "3"],
-        capture_output=True, text=True, env=env)
-    assert run.returncode == 0, run.stderr
+    assert main(["evaluate", "--policy", "pretrained:convnet", "--speeds", "7", "--trials", "1", "--out", str(out),
+                 "--no-gif", "--no-plots", "--no-progress", "--timeout", "3"]) == 0
     rec = json.loads((out / "trials.jsonl").read_text().splitlines()[0])
     assert rec["policy"] == "convnet" and rec["extra"]["policy_source"] == "pretrained:convnet"
-    run = subprocess.run([sys.executable, "-m", "vitfly.cli", "export", "pretrained:convnet", "--out",
-                          str(tmp_path / "p.onnx")], capture_output=True, text=True, env=env)
-    assert run.returncode == 0, run.stderr
-    assert "from pretrained:convnet" in run.stdout and (tmp_path / "p.onnx").is_file()
-    run = subprocess.run([sys.executable, "-m", "vitfly.cli", "evaluate", "--policy", "pretrained:nope",
-                          "--out", str(tmp_path / "e2")], capture_output=True, text=True, env=env)
-    errors = [line for line in run.stderr.splitlines() if "error" in line.lower()]
-    assert run.returncode == 2 and len(errors) == 1 and "vitfly: error: pretrained:nope: not in" in errors[0]
+    capsys.readouterr()
+    assert main(["export", "pretrained:convnet", "--out", str(tmp_path / "p.onnx")]) == 0
+    assert "from pretrained:convnet" in capsys.readouterr().out and (tmp_path / "p.onnx").is_file()
+    assert main(["evaluate", "--policy", "pretrained:nope", "--out", str(tmp_path / "e2")]) == 2
+    errors = [line for line in capsys.readouterr().err.splitlines() if "error" in line.lower()]
+    assert len(errors) == 1 and "vitfly: error: pretrained:nope: not in" in errors[0]
 
 
 def test_publish_weights_command_records_the_dataset(tmp_path):
