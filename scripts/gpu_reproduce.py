@@ -398,11 +398,13 @@ def train(args: argparse.Namespace) -> int:
     shutil.rmtree(work / "stage", ignore_errors=True)
     work.mkdir(parents=True, exist_ok=True)
     cfg = load_cfg(args)
+    sources = list(args.resume_from)
     here = cfg.out_dir / "train"  # an earlier call's runs, on a machine still warm from it
-    if args.go_on and not here.is_dir():
+    if args.go_on and here.is_dir():
+        sources.append(str(here))  # named last: it wins a tie with the carry
+    elif args.go_on:
         log(f"--go-on: no earlier call's runs in {here} (a fresh machine); resumes from --resume-from alone")
-    resumed = resume_sources([*args.resume_from, *([str(here)] if args.go_on and here.is_dir() else [])],
-                             args.preset)
+    resumed = resume_sources(sources, args.preset)
     for label in [k for k in resumed if parse_label(k).model in cfg.train.cpu_models and k not in args.runs]:
         log(f"{label}: trains on a CPU (train.cpu_models); not resumed here (name it in --runs to)")
         del resumed[label]
