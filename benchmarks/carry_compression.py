@@ -4,7 +4,8 @@ would fit one device call's room beside the working tree travelling light, where
     python benchmarks/carry_compression.py carry/paper/vit_lstm-state [more run folders ...] [--level 6]
 
 Reads each carried run's ``last.safetensors`` (``scripts/gpu_carry.py``: fp32 network weights and Adam's two
-moments, fp32 or bf16) and prints a Markdown table per tensor group: the bytes as carried (the moments also
+moments, fp32 or bf16; carried squeezed as ``last.safetensors.bpz``, ``scripts/gpu_squeeze.py``, it is read back
+first) and prints a Markdown table per tensor group: the bytes as carried (the moments also
 rounded to bf16, as ``--carry-moments bf16`` carries them) and compressed with zlib, plain and after a byte
 shuffle (each value's bytes split into planes, so the sign/exponent bytes, which repeat, sit together). A
 float's low mantissa bytes are close to random, so the gain comes from the high bytes; it depends on the
@@ -20,21 +21,25 @@ from pathlib import Path
 
 import numpy as np
 
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
+from scripts.gpu_squeeze import SUFFIX, squeeze, to_planes, unsqueeze  # noqa: E402
+
 MIB = 2**20
 
 
 def shuffled(values: np.ndarray) -> bytes:
     """The bytes of ``values`` as planes: every value's first byte, then every second byte, and so on."""
-    return values.view(np.uint8).reshape(-1, values.dtype.itemsize).T.tobytes()
+    return to_planes(values.tobytes(), values.dtype.itemsize)
 
 
 def groups(path: Path) -> dict[str, np.ndarray]:
     """``weights`` (fp32), ``exp_avg`` and ``exp_avg_sq`` (as carried), and both moments in bf16 (``*_bf16``,
     as raw 16-bit patterns: numpy has no bf16), each one flat array."""
     import torch
-    from safetensors.torch import load_file
+    from safetensors.torch import load
 
-    tensors = load_file(path)
+    data = path.read_bytes()
+    tensors = load(unsqueeze(data, str(path)) if path.name.endswith(SUFFIX) else data)
     out: dict[str, list] = {}
     for key, t in tensors.items():
         if key.startswith("/state_dict/") and t.is_floating_point():
@@ -55,7 +60,8 @@ def main(argv: list[str] | None = None) -> int:
     print("| run | tensors | carried | zlib | shuffled + zlib |")
     print("|---|---|---:|---:|---:|")
     for run in args.runs:
-        path = run / "last.safetensors"
+        path = next((p for p in (run / "last.safetensors", run / "last.safetensors.bpz") if p.is_file()),
+                    run / "last.safetensors")
         if not path.is_file():
             raise SystemExit(f"{path}: no such file; expected a run folder that scripts/gpu.py carry wrote")
         lean = {"moments as carried": [0, 0, 0], "bf16 moments": [0, 0, 0]}
@@ -70,6 +76,10 @@ def main(argv: list[str] | None = None) -> int:
         for state, (raw, plain, shuffle) in lean.items():
             print(f"| {run.name} | **weights + {state}** | {raw / MIB:.1f} MiB | {plain / MIB:.1f} MiB | "
                   f"{shuffle / MIB:.1f} MiB |")
+        data = path.read_bytes()
+        plain = unsqueeze(data, str(path)) if path.name.endswith(SUFFIX) else data
+        print(f"| {run.name} | the whole file, as scripts/gpu_squeeze.py carries it (4-byte planes) | "
+              f"{len(plain) / MIB:.1f} MiB | | {len(squeeze(plain, args.level)) / MIB:.1f} MiB |")
     return 0
 
 

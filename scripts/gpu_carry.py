@@ -11,8 +11,10 @@ included, within 64 MiB a call:
 
 - an unfinished run (stopped by a GPU slot, or started here by ``vitfly reproduce``): ``last.*``, its last
   epoch's resume state, lean (fp32 weights, Adam's moments in fp32 where they fit and in bf16 where they do not:
-  an inexact resume), ``best.*`` where the preset flies the best epoch (network weights in fp16),
-  ``unfinished.json`` (epochs, data hash, slots) and the run's metrics, split, cost, hparams and data record;
+  an inexact resume), its tensors squeezed losslessly (``last.safetensors.bpz``, ``scripts/gpu_squeeze.py``:
+  0.82 of the bytes with fp32 moments, 0.74 with bf16), ``best.*`` where the preset flies the best epoch
+  (network weights in fp16), ``unfinished.json`` (epochs, data hash, slots) and the run's metrics, split, cost,
+  hparams and data record;
 - a finished run: ``best.*``, the checkpoint it flies (network weights in fp16, as the shipped weights and as
   a run returned by a slot), ``done.json`` and the same run files.
 
@@ -28,6 +30,7 @@ import subprocess
 from pathlib import Path
 
 from scripts.gpu_slots import MARKER, compact_moments, copy_run, epochs_done, mib, relocate, tree_bytes
+from scripts.gpu_squeeze import squeeze_file, squeezed, unsqueeze_tree
 
 ROOT = Path(__file__).resolve().parent.parent
 CARRY_DIR = "carry"  # carry/<preset>/<label>/: tracked, so it lands with a commit and travels with every call
@@ -132,6 +135,7 @@ def park(cfg, r, dst: Path, moments: str) -> int:
     else:
         marker = r.marker if r.state == "unfinished" else cpu_marker(cfg, r)
         checkpoint_files.write(lean_last(run, moments), dst, LAST)
+        squeeze_file(checkpoint_files.paths(dst, LAST)[0])
         (dst / MARKER).write_text(json.dumps({**marker, "carried_moments": moments}) + "\n")
     copy_run_files(run, dst, None)
     return tree_bytes(dst)
@@ -209,6 +213,7 @@ def materialize(folder: Path) -> None:
 
     from vitfly.training import checkpoint_files
 
+    unsqueeze_tree(folder)
     ckpt_dir = folder / "checkpoints"
     ckpt_dir.mkdir(exist_ok=True)
     for name in (LAST, BEST):
@@ -225,9 +230,11 @@ def materialize(folder: Path) -> None:
 
 
 def is_carried(folder: Path) -> bool:
+    """Whether ``folder`` holds a carried checkpoint (plain or squeezed), which ``materialize`` turns into
+    ``checkpoints/*.ckpt``."""
     from vitfly.training import checkpoint_files
 
-    return checkpoint_files.exists(folder, LAST) or checkpoint_files.exists(folder, BEST)
+    return any(all(squeezed(p).exists() for p in checkpoint_files.paths(folder, name)) for name in (LAST, BEST))
 
 
 def carried_hash(folder: Path) -> str | None:

@@ -4,8 +4,8 @@ device call sends, so that the room goes to the runs' resume states.
 The device tool sends the checkout's tracked files and the untracked ones git does not ignore, 64 MiB in all
 with what a call carries. Of the working tree's 31 MiB, 25 are the shipped weights (``weights/``) and 4 the
 docs' figures and tables (``docs/``): a slot trains networks from scratch or from their carried state and reads
-neither. Left behind, they make room for a second large run's state (two ViT-class states with bf16 moments
-are about 51 MiB):
+neither. Left behind, they make room for more large runs' states (three ViT-class states with bf16 moments,
+squeezed by ``scripts/gpu_squeeze.py``, are about 58 MiB):
 
     python3 scripts/gpu.py travel light   # here, right before the device call: weights/ and docs/ stay behind
     python3 scripts/gpu.py travel full    # here, right after it: back as they were

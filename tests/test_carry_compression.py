@@ -36,6 +36,6 @@ def test_groups_split_weights_and_moments_and_round_the_moments_to_bf16(tmp_path
     assert g["exp_avg"].view(np.float32).tolist() == [1.0, 1.00390625]
     assert bench.main([str(run)]) == 0
     out = capsys.readouterr().out
-    assert "| vit-state | **weights + bf16 moments** | 0.0 MiB |" in out and out.count("\n") == 9
+    assert "| vit-state | **weights + bf16 moments** | 0.0 MiB |" in out and out.count("\n") == 10
     with pytest.raises(SystemExit, match="no such file"):
         bench.main([str(tmp_path)])
