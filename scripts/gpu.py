@@ -24,10 +24,10 @@ returns 8 files of 16 MiB), its manifest (pieces, SHA-256, contents) inside the 
 joins the pieces, checks them against that manifest and extracts them with the same safe member check. One job
 a file: ``gpu_reproduce.py`` (train, status, the runs' unpack; ``gpu_slots.py``: resume states;
 ``gpu_plan.py``: the next slot; ``gpu_carry.py``: carry and restore; ``gpu_preset.py``: a preset's runs and data;
-``gpu_travel.py``: travel light; ``gpu_squeeze.py``: resume states squeezed for the trip, both ways), ``gpu_study.py``, ``gpu_evaluate.py``, ``gpu_machine.py`` (wheels, setup,
-pipeline). The old command lines keep working: ``scripts/gpu_reproduce.py ARGS`` is ``scripts/gpu.py ARGS``,
-``scripts/gpu_study.py ARGS`` is ``scripts/gpu.py study ARGS``, ``scripts/gpu_machine.sh fetch|run DIR`` is
-``wheels`` / ``pipeline --out DIR``.
+``gpu_travel.py``: travel light; ``gpu_squeeze.py``: resume states squeezed for the trip, both ways),
+``gpu_study.py``, ``gpu_evaluate.py``, ``gpu_machine.py`` (wheels, setup, pipeline). The old command lines
+keep working: ``scripts/gpu_reproduce.py ARGS`` is ``scripts/gpu.py ARGS``, ``scripts/gpu_study.py ARGS`` is
+``scripts/gpu.py study ARGS``, ``scripts/gpu_machine.sh fetch|run DIR`` is ``wheels`` / ``pipeline --out DIR``.
 Docs: docs/reproduce.md, "Work on a GPU machine".
 """
 

@@ -83,6 +83,15 @@ def preset_carry(carry_dir: str, preset: str) -> Path:
     return ROOT / carry_dir / preset
 
 
+def other_carries(carry_dir: Path) -> list[Path]:
+    """The other presets' carries beside ``carry_dir`` (``carry/<preset>``): no run of theirs goes to this
+    preset's slot, so they stay here when it travels light."""
+    parent = carry_dir.parent
+    if parent == ROOT or not parent.is_dir():
+        return []
+    return sorted(p for p in parent.iterdir() if p.is_dir() and p.resolve() != carry_dir.resolve())
+
+
 def lean_last(run: Path, moments: str) -> dict:
     """A run's last.ckpt with Adam's moments in ``moments`` (fp32: as they are)."""
     import torch

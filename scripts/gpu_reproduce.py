@@ -588,7 +588,7 @@ def run_states(cfg) -> list:
 def status(args: argparse.Namespace) -> int:
     """Every run of the preset and the next slot; with ``carry`` (``args.write_carry``), every run that trained here
     written into ``carry/<preset>/`` too (``scripts/gpu_carry.py``), the slot's with the moments it plans."""
-    from scripts.gpu_carry import preset_carry, write_carry
+    from scripts.gpu_carry import other_carries, preset_carry, write_carry
     from scripts.gpu_plan import next_slot
     from scripts.gpu_slots import CARRY_BYTES, mib, travelling_bytes
     from scripts.gpu_travel import is_light, light_bytes
@@ -599,10 +599,11 @@ def status(args: argparse.Namespace) -> int:
     for r in rows:
         print(f"{r.label:<{width}}  {r.text}" + (f" ({mib(r.size)} here)" if r.size else ""))
     carry_dir = preset_carry(args.carry_dir, cfg.preset)
-    # as the call travels: light (scripts/gpu_travel.py), the shipped weights, the docs and the carried runs of no
-    # slot left here; the room is what the code and .whl/ leave of the call's 64 MiB
+    # as the call travels: light (scripts/gpu_travel.py), the shipped weights, the docs, the other presets' carries
+    # and the carried runs of no slot left here; the room is what the code and .whl/ leave of the call's 64 MiB
     light = is_light(ROOT)
-    tree = travelling_bytes(ROOT, leave_out=carry_dir) - (0 if light else light_bytes(ROOT))
+    others = [p for p in other_carries(carry_dir) if p.resolve().is_relative_to(ROOT)]
+    tree = travelling_bytes(ROOT, leave_out=[carry_dir, *others]) - (0 if light else light_bytes(ROOT))
     if light:
         print("  travelling light now (weights/ and docs/ out of git's index, commits refused): once the device "
               "call is done, python3 scripts/gpu.py travel full")
@@ -643,6 +644,7 @@ def status(args: argparse.Namespace) -> int:
         r.state == "done" or r.run.model in cfg.train.cpu_models))]  # in carry/, or once `carry` has run
     stay = [(carry_dir / r.label).relative_to(ROOT).as_posix() for r in carried_here
             if r.label not in travelling and (carry_dir / r.label).resolve().is_relative_to(ROOT)]
+    stay += [p.resolve().relative_to(ROOT).as_posix() for p in others]
     print("  then, right before the call (weights/, docs/ and the carried runs of no slot stay here; right after "
           "it: python3 scripts/gpu.py travel full):\n    python3 scripts/gpu.py travel light"
           + (f" --leave {' '.join(stay)}" if stay else ""))

@@ -155,10 +155,10 @@ def set_metrics_aside(run_dir: Path) -> None:
     set_aside(run_dir, epochs_done(run_dir))
 
 
-def travelling_bytes(root: Path, leave_out: Path | None = None) -> int:
+def travelling_bytes(root: Path, leave_out: Path | list[Path] | None = None) -> int:
     """What every device call sends besides what it carries: the working tree (tracked files and untracked ones
-    git does not ignore) and the carried wheels (``.whl/``); without the files under ``leave_out`` (the carry,
-    part of the tree, planned apart)."""
+    git does not ignore) and the carried wheels (``.whl/``); without the files under ``leave_out`` (a folder or
+    several: the carry, part of the tree, planned apart, and the carries that stay here)."""
     listed = subprocess.run(["git", "-C", str(root), "ls-files", "-z", "--cached", "--others", "--exclude-standard"],
                             capture_output=True)
     if listed.returncode != 0:  # the device tool sends a git checkout: so does the plan of what it sends
@@ -166,8 +166,8 @@ def travelling_bytes(root: Path, leave_out: Path | None = None) -> int:
                          "slot plan counts the working tree the device tool sends")
     listed = listed.stdout.split(b"\0")
     files = [root / os.fsdecode(f) for f in listed if f]
-    if leave_out is not None:
-        files = [f for f in files if not f.resolve().is_relative_to(leave_out.resolve())]
+    for folder in [leave_out] if isinstance(leave_out, Path) else leave_out or []:
+        files = [f for f in files if not f.resolve().is_relative_to(folder.resolve())]
     return sum(f.stat().st_size for f in files if f.is_file()) + tree_bytes(root / ".whl") * (root / ".whl").exists()
 
 

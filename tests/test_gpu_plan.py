@@ -193,5 +193,25 @@ def test_what_a_call_sends_beside_its_carry(tmp_path):
     (repo / ".whl").mkdir()
     (repo / ".whl" / "a.whl").write_bytes(b"w" * 50)
     assert travelling_bytes(repo) == 1000 + 300 + 13 + 50
+    for preset, size in (("paper", 700), ("paper_vitfly", 90)):  # two presets' carries, untracked, not ignored
+        (repo / "carry" / preset / "vit-state").mkdir(parents=True)
+        (repo / "carry" / preset / "vit-state" / "last.json").write_bytes(b"c" * size)
+    assert travelling_bytes(repo) == 1000 + 300 + 13 + 50 + 700 + 90
+    assert travelling_bytes(repo, leave_out=repo / "carry" / "paper") == 1000 + 300 + 13 + 50 + 90
+    assert travelling_bytes(repo, leave_out=[repo / "carry" / "paper", repo / "carry" / "paper_vitfly"]) == 1363
     with pytest.raises(SystemExit, match="not a git checkout"):
         travelling_bytes(plain)
+
+
+def test_a_presets_slot_leaves_the_other_presets_carries_here(tmp_path):
+    """carry/paper_vitfly's slot sends nothing of carry/paper (and the other way round): status plans without it
+    and prints it in the `travel light --leave` line."""
+    from scripts.gpu_carry import ROOT, other_carries
+
+    for preset in ("paper", "paper_vitfly", "tiny"):
+        (tmp_path / "carry" / preset).mkdir(parents=True)
+    (tmp_path / "carry" / "notes.txt").write_text("not a preset")
+    assert other_carries(tmp_path / "carry" / "paper") == [tmp_path / "carry" / "paper_vitfly",
+                                                            tmp_path / "carry" / "tiny"]
+    assert other_carries(tmp_path / "nowhere" / "paper") == []
+    assert other_carries(ROOT / "paper") == []  # --carry-dir . would put the presets' carries in the repository's root
