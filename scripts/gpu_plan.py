@@ -7,11 +7,11 @@ sends the working tree, carry/ and .whl/, 64 MiB in all. Travelling light (``scr
 on a CPU, or finished) stay here, so the carry holds what the rest leaves. A carried state is lean
 (``scripts/gpu_carry.py``): last.* (fp32 weights and Adam's moments, in fp32 where they fit, else in bf16: an
 inexact resume; squeezed losslessly, ``scripts/gpu_squeeze.py``), and best.* in fp16 only where the preset flies
-the best epoch. So a slot carries the unfinished
-runs (``train.slot_order`` first) within that room, as many as fit in bf16 and then fp32 for those the room still
-holds, and starts runs not started yet, in the same order, only while the states expected home still fit it: a
-carried run that will not finish in this slot (its last slot's epoch time says so) counts with its size, a new
-run with its state's size estimated from its parameter count. A run whose state could never travel (ResNet-18's)
+the best epoch. So a slot carries the unfinished runs (``train.slot_order`` first) within that room, as many as
+fit in bf16 and then fp32 for those the room still holds, and starts runs not started yet, in the same order,
+only while the states expected home still fit it: a carried run that will not finish in this slot (its last
+slot's epoch time says so) counts with its size, a new run with its state's size estimated from its parameter
+count. A run whose state could never travel (ResNet-18's)
 starts only alone, and must finish inside the command. Runs of ``train.cpu_models`` train on a CPU and are left
 out, as are runs being trained here (``vitfly reproduce`` resumes them).
 """
