@@ -18,7 +18,7 @@ out, as are runs being trained here (``vitfly reproduce`` resumes them).
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 # a carried state: last.*'s fp32 weights and Adam's two moments per parameter (best.* adds 2 where it is kept)
@@ -166,3 +166,18 @@ def next_slot(cfg, rows: list[RunState], carry_bytes: int, moments: str = "auto"
         if r.state == "not started" and r.run.model not in cpu and r not in slot.start:
             slot.wait.setdefault(r.label, "a later slot")
     return slot
+
+
+def slot_after(cfg, rows: list[RunState], slot: Slot, carry_bytes: int, moments: str = "auto",
+               deadline_s: float = 560.0, reserve_s: float = 40.0) -> Slot | None:
+    """What a follow-on call starts should every run of ``slot`` finish inside the first call (the vitfly arm's
+    large batches may: ViT+LSTM's 100 epochs take about 5 minutes of an H100): the next slot with them done.
+    None where that cannot be: a carried run that its last slot's epoch time says will not finish, or a run that
+    trains alone."""
+    train_s = deadline_s - reserve_s - STARTUP_S
+    if slot.alone or not (slot.carry or slot.start) or not all(finishes(r, train_s) for r in slot.carry):
+        return None
+    ran = {r.label for r in [*slot.carry, *slot.start]}
+    after = next_slot(cfg, [replace(r, state="done") if r.label in ran else r for r in rows], carry_bytes, moments,
+                      deadline_s, reserve_s)
+    return after if after.start and not after.alone else None

@@ -47,8 +47,9 @@ this machine); a run that came back without best.ckpt keeps the one here. A run 
 left alone. ``status`` lists every run of the preset (done, unfinished k/N epochs, not started) and the next
 slot (``scripts/gpu_plan.py``): the unfinished runs it carries, lean (last.ckpt alone, bf16 moments where fp32
 ones do not fit), within what the working tree leaves of 64 MiB, and the runs it starts, while what comes home
-still fits the next carry; ``carry`` keeps every run that trained here in ``carry/<preset>/``
-(``scripts/gpu_carry.py``), ``restore`` puts them back.
+still fits the next carry; then the follow-on call for the warm machine and, where every run of the slot could
+finish in the first call, the follow-on that starts the next runs instead; ``carry`` keeps every run that
+trained here in ``carry/<preset>/`` (``scripts/gpu_carry.py``), ``restore`` puts them back.
 A finished run returns without ``last.ckpt``: a later change of its settings trains it again from the start.
 """
 
@@ -589,7 +590,7 @@ def status(args: argparse.Namespace) -> int:
     """Every run of the preset and the next slot; with ``carry`` (``args.write_carry``), every run that trained here
     written into ``carry/<preset>/`` too (``scripts/gpu_carry.py``), the slot's with the moments it plans."""
     from scripts.gpu_carry import other_carries, preset_carry, write_carry
-    from scripts.gpu_plan import next_slot
+    from scripts.gpu_plan import next_slot, slot_after
     from scripts.gpu_slots import CARRY_BYTES, mib, travelling_bytes
     from scripts.gpu_travel import is_light, light_bytes
 
@@ -608,8 +609,8 @@ def status(args: argparse.Namespace) -> int:
         print("  travelling light now (weights/ and docs/ out of git's index, commits refused): once the device "
               "call is done, python3 scripts/gpu.py travel full")
     room = CARRY_BYTES - tree
-    slot = next_slot(cfg, [r for r in rows if r.run.model not in cfg.train.cpu_models or r.state == "not started"],
-                     room, args.carry_moments, args.deadline_s, args.reserve_s)
+    planned = [r for r in rows if r.run.model not in cfg.train.cpu_models or r.state == "not started"]
+    slot = next_slot(cfg, planned, room, args.carry_moments, args.deadline_s, args.reserve_s)
     print(f"next slot carries {len(slot.carry)} unfinished runs, {mib(sum(slot.sizes.values()))} of the "
           f"{mib(room)} a call leaves beside the working tree travelling light and .whl/ ({mib(tree)})"
           + (f"; {', '.join(slot.no_room)} wait for a later slot (no room)" if slot.no_room else ""))
@@ -648,8 +649,8 @@ def status(args: argparse.Namespace) -> int:
     print("  then, right before the call (weights/, docs/ and the carried runs of no slot stay here; right after "
           "it: python3 scripts/gpu.py travel full):\n    python3 scripts/gpu.py travel light"
           + (f" --leave {' '.join(stay)}" if stay else ""))
-    command = (f"python3 scripts/gpu.py train --preset {cfg.preset} --out $OUT --expect-data-hash {data_hash}"
-               + (f" --resume-from {here}" if slot.carry else "")
+    base = f"python3 scripts/gpu.py train --preset {cfg.preset} --out $OUT --expect-data-hash {data_hash}"
+    command = (base + (f" --resume-from {here}" if slot.carry else "")
                + (f" --runs {' '.join(r.label for r in slot.start)}" if slot.start else "")
                + "".join(" " + f for f in flags))
     print(f"  carry: {json.dumps(['.whl'])} ({here}/ travels with the working tree)\n  command: {command}"
@@ -657,6 +658,11 @@ def status(args: argparse.Namespace) -> int:
     print("  then at once, while the machine is warm (30 s), a follow-on call for what the lease has left "
           "(timeout_s T: its budget_left_s less 30 s), resuming the runs where the first call left them there:"
           f"\n    {command} --go-on --deadline-s $((T - 10 - SECONDS))")
+    after = slot_after(cfg, planned, slot, room, args.carry_moments, args.deadline_s, args.reserve_s)
+    if after is not None:  # a finished run is not trained again: the follow-on would have nothing to do
+        print("  or, if the first call's report says every run finished, a follow-on that starts the next:\n    "
+              f"{base} --runs {' '.join(r.label for r in after.start)}" + "".join(" " + f for f in flags)
+              + " --go-on --deadline-s $((T - 10 - SECONDS))")
     return 0
 
 

@@ -25,7 +25,7 @@ REPO = Path(__file__).resolve().parents[1]
 if str(REPO) not in sys.path:
     sys.path.insert(0, str(REPO))
 
-from scripts.gpu_plan import RunState, next_slot, state_bytes  # noqa: E402
+from scripts.gpu_plan import RunState, next_slot, slot_after, state_bytes  # noqa: E402
 
 ROOM = 32 * 2**20  # what the working tree and .whl/ leave a call's carry
 
@@ -148,6 +148,32 @@ def test_carry_in_slot_order_within_the_room():
     assert labels(slot.carry) == ["vit-state"]  # ViT before LSTMnet (train.slot_order): 19.55e6 + 18.60e6 > 33.55e6
     # (a run of cpu_models left unfinished by a GPU slot goes on there)
     assert slot.no_room == ["lstmnet-state"] and slot.start == []
+
+
+def test_a_follow_on_starts_the_next_runs_only_where_the_first_calls_could_all_finish():
+    """paper_vitfly (the vitfly arm flies its best epoch, so best.* adds 2 bytes a parameter): its first slot starts
+    ViT+LSTM and ViT (29,561,191 + 25,750,487 bytes home of 62,914,560; LSTMnet's 24,504,088 no more). Should both
+    finish in the first call, the follow-on starts LSTMnet and UNet+LSTM (train.slot_order: 24,504,088 +
+    24,552,581 = 49,056,669), ResNet-18 (93.3e6, cannot travel) not beside them. The paper arm's slot carries
+    ViT+LSTM with 93 epochs left at 40.5 s: it cannot finish, so there is no such follow-on."""
+    cfg = preset("paper_vitfly")
+    slot = next_slot(cfg, rows(cfg), 60 * 2**20)
+    assert labels(slot.start) == ["vit_lstm-state", "vit-state"] and slot.back_bytes == 29_561_191 + 25_750_487
+    after = slot_after(cfg, rows(cfg), slot, 60 * 2**20)
+    assert labels(after.start) == ["lstmnet-state", "unet_lstm-state"] and after.back_bytes == 49_056_669
+    assert "cannot travel" in after.wait["resnet18-state"]
+    paper = preset("paper")
+    marker = {"epochs": 7, "max_epochs": 100, "epoch_s": 40.5, "first_epoch_s": 68.2}
+    states = rows(paper, unfinished={"vit_lstm-state": (0, marker)})
+    assert slot_after(paper, states, next_slot(paper, states, 60 * 2**20), 60 * 2**20) is None
+    # 5 epochs left: 68.2 + 4 x 40.5 s fit a call's 460 s of training, so ViT+LSTM frees the next carry, and ViT,
+    # UNet+LSTM and ViT+LSTM without the state start beside it (19,548,089 + 18,640,937 + 22,433,865 bytes: the
+    # no-state networks have as many parameters); should they all finish, ViT and UNet+LSTM without it follow
+    marker.update(epochs=95)
+    slot = next_slot(paper, states, 60 * 2**20)
+    assert labels(slot.start) == ["vit-state", "unet_lstm-state", "vit_lstm-nostate"] and slot.back_bytes == 60_622_891
+    after = slot_after(paper, states, slot, 60 * 2**20)
+    assert labels(after.start) == ["vit-nostate", "unet_lstm-nostate"] and after.back_bytes == 38_189_026
 
 
 def test_resnet18_trains_alone_and_must_finish():
