@@ -56,6 +56,8 @@ def unsqueeze(blob: bytes, source: str = "<bytes>") -> bytes:
         raise SystemExit(f"{source}: not a squeezed file (expected the magic {MAGIC.decode()}, written by "
                          "scripts/gpu_squeeze.py)")
     stride, length, crc = HEADER.unpack_from(blob, len(MAGIC))
+    if stride < 1:
+        raise SystemExit(f"{source}: damaged (its header gives a byte stride of {stride}); carry or return it again")
     try:
         data = from_planes(zlib.decompress(blob[start:]), stride)
     except zlib.error as err:

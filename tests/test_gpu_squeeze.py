@@ -56,6 +56,9 @@ def test_damage_is_refused_in_one_line(tmp_path):
         sq.unsqueeze(b"PK\x03\x04" + bytes(blob[4:]), "x.bpz")
     with pytest.raises(SystemExit, match=r"^x\.bpz: damaged"):
         sq.unsqueeze(bytes(blob[:-10]), "x.bpz")  # cut short
+    no_stride = blob[:6] + b"\x00" + blob[7:]  # the header's stride byte
+    with pytest.raises(SystemExit, match=r"^x\.bpz: damaged \(its header gives a byte stride of 0\)"):
+        sq.unsqueeze(bytes(no_stride), "x.bpz")
     wrong_crc = blob[:15] + bytes([blob[15] ^ 1]) + blob[16:]  # the CRC field's last byte
     with pytest.raises(SystemExit, match=r"^x\.bpz: damaged \(length 4000 of 4000, or its CRC-32 differs\)"):
         sq.unsqueeze(bytes(wrong_crc), "x.bpz")
