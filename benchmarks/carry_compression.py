@@ -22,7 +22,7 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
-from scripts.gpu_squeeze import SUFFIX, squeeze, to_planes, unsqueeze  # noqa: E402
+from scripts.gpu_squeeze import read_plain, squeeze, squeezed, to_planes  # noqa: E402
 
 MIB = 2**20
 
@@ -32,14 +32,13 @@ def shuffled(values: np.ndarray) -> bytes:
     return to_planes(values.tobytes(), values.dtype.itemsize)
 
 
-def groups(path: Path) -> dict[str, np.ndarray]:
+def groups(path: Path, data: bytes | None = None) -> dict[str, np.ndarray]:
     """``weights`` (fp32), ``exp_avg`` and ``exp_avg_sq`` (as carried), and both moments in bf16 (``*_bf16``,
-    as raw 16-bit patterns: numpy has no bf16), each one flat array."""
+    as raw 16-bit patterns: numpy has no bf16), each one flat array; ``data``: the file's plain bytes, if read."""
     import torch
     from safetensors.torch import load
 
-    data = path.read_bytes()
-    tensors = load(unsqueeze(data, str(path)) if path.name.endswith(SUFFIX) else data)
+    tensors = load(read_plain(path) if data is None else data)
     out: dict[str, list] = {}
     for key, t in tensors.items():
         if key.startswith("/state_dict/") and t.is_floating_point():
@@ -60,12 +59,12 @@ def main(argv: list[str] | None = None) -> int:
     print("| run | tensors | carried | zlib | shuffled + zlib |")
     print("|---|---|---:|---:|---:|")
     for run in args.runs:
-        path = next((p for p in (run / "last.safetensors", run / "last.safetensors.bpz") if p.is_file()),
-                    run / "last.safetensors")
+        path = squeezed(run / "last.safetensors")
         if not path.is_file():
             raise SystemExit(f"{path}: no such file; expected a run folder that scripts/gpu.py carry wrote")
+        whole = read_plain(path)
         lean = {"moments as carried": [0, 0, 0], "bf16 moments": [0, 0, 0]}
-        for name, values in groups(path).items():
+        for name, values in groups(path, whole).items():
             sizes = [values.nbytes, len(zlib.compress(values.tobytes(), args.level)),
                      len(zlib.compress(shuffled(values), args.level))]
             print(f"| {run.name} | {name} ({values.dtype.itemsize * 8}-bit) | {sizes[0] / MIB:.1f} MiB | "
@@ -76,10 +75,8 @@ def main(argv: list[str] | None = None) -> int:
         for state, (raw, plain, shuffle) in lean.items():
             print(f"| {run.name} | **weights + {state}** | {raw / MIB:.1f} MiB | {plain / MIB:.1f} MiB | "
                   f"{shuffle / MIB:.1f} MiB |")
-        data = path.read_bytes()
-        plain = unsqueeze(data, str(path)) if path.name.endswith(SUFFIX) else data
         print(f"| {run.name} | the whole file, as scripts/gpu_squeeze.py carries it (4-byte planes) | "
-              f"{len(plain) / MIB:.1f} MiB | | {len(squeeze(plain, args.level)) / MIB:.1f} MiB |")
+              f"{len(whole) / MIB:.1f} MiB | | {len(squeeze(whole, args.level)) / MIB:.1f} MiB |")
     return 0
 
 

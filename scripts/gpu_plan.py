@@ -11,9 +11,9 @@ the best epoch. So a slot carries the unfinished runs (``train.slot_order`` firs
 fit in bf16 and then fp32 for those the room still holds, and starts runs not started yet, in the same order,
 only while the states expected home still fit it: a carried run that will not finish in this slot (its last
 slot's epoch time says so) counts with its size, a new run with its state's size estimated from its parameter
-count. A run whose state could never travel (ResNet-18's)
-starts only alone, and must finish inside the command. Runs of ``train.cpu_models`` train on a CPU and are left
-out, as are runs being trained here (``vitfly reproduce`` resumes them).
+count. A run whose state could never travel (ResNet-18's) starts only alone, and must finish inside the command.
+Runs of ``train.cpu_models`` train on a CPU and are left out, as are runs being trained here (``vitfly
+reproduce`` resumes them).
 """
 
 from __future__ import annotations

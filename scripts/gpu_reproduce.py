@@ -56,6 +56,7 @@ A finished run returns without ``last.ckpt``: a later change of its settings tra
 from __future__ import annotations
 
 import argparse
+import io
 import json
 import os
 import shutil
@@ -194,7 +195,7 @@ def lighten_to_fit(staged: list[tuple[str, Path]], report: dict, budget: int) ->
 
     from scripts.gpu_pack import HEADER_BYTES
     from scripts.gpu_slots import MARKER, compact_moments, save_atomic, tree_bytes
-    from scripts.gpu_squeeze import SUFFIX, squeeze_file, unsqueeze_file
+    from scripts.gpu_squeeze import SUFFIX, read_plain, squeeze_file
 
     for label, folder in sorted(staged, key=lambda s: -tree_bytes(s[1])):
         if sum(tree_bytes(f) + HEADER_BYTES for _, f in staged) <= budget:
@@ -202,9 +203,11 @@ def lighten_to_fit(staged: list[tuple[str, Path]], report: dict, budget: int) ->
         marker = json.loads((folder / MARKER).read_text()) if (folder / MARKER).exists() else None
         if marker is None or marker["moments"] == "bf16":  # finished, or already light
             continue
-        last = unsqueeze_file(folder / "checkpoints" / f"last.ckpt{SUFFIX}")
-        save_atomic(compact_moments(torch.load(last, map_location="cpu", weights_only=True), "bf16"), last)
-        squeeze_file(last)
+        squeezed_last = folder / "checkpoints" / f"last.ckpt{SUFFIX}"
+        state = torch.load(io.BytesIO(read_plain(squeezed_last)), map_location="cpu", weights_only=True)
+        last = squeezed_last.with_name("last.ckpt")
+        save_atomic(compact_moments(state, "bf16"), last)
+        squeeze_file(last)  # replaces the fp32 one
         (folder / MARKER).write_text(json.dumps({**marker, "moments": "bf16"}) + "\n")
         report["runs"][label].update(moments="bf16", note="Adam moments sent in bf16 to fit the trip back "
                                      "(the resume is no longer exact)")

@@ -68,6 +68,12 @@ def unsqueeze(blob: bytes, source: str = "<bytes>") -> bytes:
     return data
 
 
+def read_plain(path: Path) -> bytes:
+    """The bytes of ``path`` as they were before ``squeeze_file`` (a plain file: as it is)."""
+    data = Path(path).read_bytes()
+    return unsqueeze(data, str(path)) if Path(path).name.endswith(SUFFIX) else data
+
+
 def plain_bytes(path: Path) -> int:
     """The bytes of ``path`` as it was before ``squeeze_file`` (its header says; a plain file: its size)."""
     if not path.name.endswith(SUFFIX):
@@ -96,7 +102,7 @@ def squeeze_file(path: Path) -> Path:
 def unsqueeze_file(path: Path) -> Path:
     """``NAME.bpz`` replaced by ``NAME``, as it was before ``squeeze_file``; returns ``NAME``."""
     out = path.with_name(path.name[:-len(SUFFIX)])
-    _write_atomic(out, unsqueeze(path.read_bytes(), str(path)))
+    _write_atomic(out, read_plain(path))
     path.unlink()
     return out
 
