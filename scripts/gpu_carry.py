@@ -122,10 +122,31 @@ def cpu_marker(cfg, r) -> dict:
 
     run = r.folder
     record = json.loads((run / "data.json").read_text()) if (run / "data.json").exists() else {}
-    n = epochs_done(run)
+    n, fit_s = epochs_done(run), round(_fit_seconds(run), 1)
     return {"label": r.label, "preset": cfg.preset, "dataset_hash": record.get("dataset_hash"), "epochs": n,
             "max_epochs": max_epochs(cfg, r.run),
-            "slots": [{"device": "cpu", "epochs": [0, n], "wall_s": round(_fit_seconds(run), 1)}]}
+            "slots": [{"device": "cpu", "epochs": [0, n], "wall_s": fit_s, "fit_s": fit_s}]}
+
+
+def caught_up(marker: dict, run: Path) -> dict:
+    """``marker`` with the epochs that ``vitfly reproduce`` trained here since its last slot as one more CPU slot.
+
+    Its ``wall_s`` is the fitting time that ``last.ckpt``'s ``Timer`` gained since the last slot's ``fit_s``;
+    a slot without ``fit_s`` (older markers) ended at the sum of the slots' ``wall_s``, exact for CPU slots (their
+    ``wall_s`` is the Timer's) and a little early for GPU ones (start-up included), so never too much here.
+    """
+    from vitfly.workflows.reproduce import _fit_seconds
+
+    slots = marker.get("slots", [])
+    since = slots[-1]["epochs"][1] if slots else 0
+    n = epochs_done(run)
+    if n <= since:
+        return marker
+    fit_s = _fit_seconds(run)
+    before = slots[-1].get("fit_s", sum(s["wall_s"] for s in slots)) if slots else 0.0
+    slot = {"device": "cpu", "epochs": [since, n], "wall_s": round(max(0.0, fit_s - before), 1),
+            "fit_s": round(fit_s, 1)}
+    return {**marker, "epochs": n, "slots": [*slots, slot]}
 
 
 def park(cfg, r, dst: Path, moments: str) -> int:
@@ -142,7 +163,7 @@ def park(cfg, r, dst: Path, moments: str) -> int:
         done = json.loads((run / "done.json").read_text())
         (dst / "done.json").write_text(json.dumps({**done, "checkpoint": BEST}) + "\n")
     else:
-        marker = r.marker if r.state == "unfinished" else cpu_marker(cfg, r)
+        marker = caught_up(r.marker, run) if r.state == "unfinished" else cpu_marker(cfg, r)
         checkpoint_files.write(lean_last(run, moments), dst, LAST)
         squeeze_file(checkpoint_files.paths(dst, LAST)[0])
         (dst / MARKER).write_text(json.dumps({**marker, "carried_moments": moments}) + "\n")

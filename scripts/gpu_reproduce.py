@@ -338,13 +338,16 @@ def stage_run(cfg, label: str, ended: tuple, resumed: dict, data_hash: str, args
     """What one run did this slot (the report's entry), and its folder staged for the trip back (or None)."""
     from scripts.gpu_slots import MARKER, epochs_done, steady_epoch_s
     from vitfly.atomic import write_text
+    from vitfly.workflows.reproduce import _fit_seconds
     from vitfly.workflows.reproduce_config import train_stage
 
     d = run_dir(cfg, label)
     rc, wall_s = ended
     marker = resumed[label][1] if label in resumed else {"label": label, "preset": args.preset, "slots": []}
     before, after = (marker.get("epochs", 0), epochs_done(d))
-    slot = {"device": device_name(), "epochs": [before, after], "wall_s": round(wall_s, 1)}
+    # fit_s: the Timer's fitting seconds at the slot's end, where a CPU session that goes on from it counts from
+    slot = {"device": device_name(), "epochs": [before, after], "wall_s": round(wall_s, 1),
+            "fit_s": round(_fit_seconds(d), 1)}
     if label in resumed:  # an exact resume (fp32) or not (bf16)
         slot["moments_in"] = marker.get("carried_moments", marker.get("moments", "fp32"))
     entry = {"rc": rc, "epochs": [before, after], "wall_s": slot["wall_s"]}

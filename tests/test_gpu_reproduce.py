@@ -167,6 +167,7 @@ def test_a_run_stopped_in_one_slot_resumes_in_the_next_exactly(tmp_path, data, t
     marker = json.loads((run / "unfinished.json").read_text())
     assert (marker["epochs"], marker["max_epochs"], marker["dataset_hash"]) == (1, 2, data_hash)
     assert marker["slots"][0]["device"] == "cpu" and marker["moments"] == "fp32"
+    assert 0 < marker["slots"][0]["fit_s"] <= marker["slots"][0]["wall_s"]  # the Timer, start-up not in it
     assert 0 < marker["first_epoch_s"] == marker["epoch_s"]  # one epoch measured: it is the first and the steady
     saved = torch.load(run / "checkpoints" / "last.ckpt", map_location="cpu", weights_only=True)
     assert (saved["epoch"], saved["global_step"]) == (0, 2)
@@ -323,6 +324,7 @@ def test_runs_outlive_the_session_in_the_carry(tmp_path, data, two_epochs, capsy
                      "last.safetensors.bpz", "metrics.csv", "split.json", "unfinished.json"]  # last.* squeezed
     marker = json.loads((kept / "convnet-nostate" / "unfinished.json").read_text())  # written for the CPU run
     assert (marker["epochs"], marker["max_epochs"], marker["slots"][0]["device"]) == (1, 2, "cpu")
+    assert 0 < marker["slots"][0]["fit_s"] == marker["slots"][0]["wall_s"]  # a CPU run's time is its Timer's
     assert marker["dataset_hash"] == dataset_fingerprint(data)["dataset_hash"]
     # a preset that trains ConvNet on a CPU: a slot does not resume its carried runs unless --runs names them
     config = yaml.safe_load(two_epochs.read_text())
@@ -602,3 +604,31 @@ def test_a_finished_runs_checkpoint_is_found_relative_to_its_folder_or_the_worki
     assert carry.flown_checkpoint(None, run) == folder / "checkpoints" / "last.ckpt"
     (folder / "done.json").write_text(json.dumps({"checkpoint": "checkpoints/last.ckpt"}))  # as carried runs say
     assert carry.flown_checkpoint(None, run) == folder / "checkpoints" / "last.ckpt"
+
+
+def test_a_carried_run_resumed_on_this_cpu_keeps_a_slot_for_each_session(tmp_path):
+    """A restored run that ``vitfly reproduce`` took further here goes back into the carry with one more CPU
+    slot: the epochs since the marker's last slot, and the fitting seconds its checkpoint's Timer gained."""
+    carry = load_script("gpu_carry")
+    run = tmp_path / "lstmnet-nostate"
+    (run / "checkpoints").mkdir(parents=True)
+
+    def trained(epochs: int, fit_s: float) -> None:
+        torch.save({"epoch": epochs - 1, "callbacks": {"Timer": {"time_elapsed": {"train": fit_s}}}},
+                   run / "checkpoints" / "last.ckpt")
+
+    cpu = {"device": "cpu", "epochs": [0, 18], "wall_s": 5242.8}  # an older marker: no fit_s
+    trained(18, 5242.8)
+    assert carry.caught_up({"epochs": 18, "slots": [cpu]}, run) == {"epochs": 18, "slots": [cpu]}
+    trained(82, 14242.8)  # 64 epochs in 9,000 s more
+    marker = carry.caught_up({"epochs": 82, "slots": [cpu]}, run)
+    assert marker["slots"][1] == {"device": "cpu", "epochs": [18, 82], "wall_s": 9000.0, "fit_s": 14242.8}
+    trained(90, 15000.0)  # the next session counts from the fit_s the last one recorded
+    assert carry.caught_up(marker, run)["slots"][2] == {"device": "cpu", "epochs": [82, 90], "wall_s": 757.2,
+                                                        "fit_s": 15000.0}
+    # after a GPU slot whose wall_s (start-up included) outran the Timer: never a negative CPU slot
+    gpu = {"device": "NVIDIA H200", "epochs": [0, 7], "wall_s": 344.0}
+    trained(8, 300.0)
+    assert carry.caught_up({"epochs": 8, "slots": [gpu]}, run)["slots"][1]["wall_s"] == 0.0
+    trained(9, 400.0)
+    assert carry.caught_up({"epochs": 9, "slots": [gpu]}, run)["slots"][1]["wall_s"] == 56.0
