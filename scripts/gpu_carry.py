@@ -129,7 +129,8 @@ def cpu_marker(cfg, r) -> dict:
 
 
 def caught_up(marker: dict, run: Path) -> dict:
-    """``marker`` with the epochs that ``vitfly reproduce`` trained here since its last slot as one more CPU slot.
+    """``marker`` with the epochs of the run's ``last.ckpt``, and those that ``vitfly reproduce`` trained here since
+    the marker's last slot as one more CPU slot.
 
     Its ``wall_s`` is the fitting time that ``last.ckpt``'s ``Timer`` gained since the last slot's ``fit_s``;
     a slot without ``fit_s`` (older markers) ended at the sum of the slots' ``wall_s``, exact for CPU slots (their
@@ -141,7 +142,7 @@ def caught_up(marker: dict, run: Path) -> dict:
     since = slots[-1]["epochs"][1] if slots else 0
     n = epochs_done(run)
     if n <= since:
-        return marker
+        return {**marker, "epochs": n}
     fit_s = _fit_seconds(run)
     before = slots[-1].get("fit_s", sum(s["wall_s"] for s in slots)) if slots else 0.0
     slot = {"device": "cpu", "epochs": [since, n], "wall_s": round(max(0.0, fit_s - before), 1),
@@ -163,7 +164,7 @@ def park(cfg, r, dst: Path, moments: str) -> int:
         done = json.loads((run / "done.json").read_text())
         (dst / "done.json").write_text(json.dumps({**done, "checkpoint": BEST}) + "\n")
     else:
-        marker = caught_up(r.marker, run) if r.state == "unfinished" else cpu_marker(cfg, r)
+        marker = r.marker if r.state == "unfinished" else cpu_marker(cfg, r)  # run_states caught it up
         checkpoint_files.write(lean_last(run, moments), dst, LAST)
         squeeze_file(checkpoint_files.paths(dst, LAST)[0])
         (dst / MARKER).write_text(json.dumps({**marker, "carried_moments": moments}) + "\n")

@@ -568,6 +568,7 @@ def unpack(args: argparse.Namespace) -> int:
 
 def run_states(cfg) -> list:
     """Every run of the preset as it stands here (``scripts.gpu_plan.RunState``), in the preset's order."""
+    from scripts.gpu_carry import caught_up
     from scripts.gpu_plan import RunState
     from scripts.gpu_slots import MARKER, epochs_done, tree_bytes
     from vitfly.workflows.reproduce_config import runs, train_stage
@@ -581,7 +582,8 @@ def run_states(cfg) -> list:
             rows.append(RunState(run, "done", "done" + (f" ({on['epochs']} epochs on {on['device']})" if on else ""),
                                  d))
         elif (d / MARKER).exists():
-            marker = {**json.loads((d / MARKER).read_text()), "epochs": epochs_done(d), "max_epochs": n}
+            # a restored run that vitfly reproduce took further here: those epochs as one more CPU slot
+            marker = caught_up({**json.loads((d / MARKER).read_text()), "max_epochs": n}, d)
             rows.append(RunState(run, "unfinished", f"unfinished: {progress(marker)}{slots_left(marker)}", d,
                                  tree_bytes(d), marker))
         elif epochs_done(d):

@@ -606,9 +606,10 @@ def test_a_finished_runs_checkpoint_is_found_relative_to_its_folder_or_the_worki
     assert carry.flown_checkpoint(None, run) == folder / "checkpoints" / "last.ckpt"
 
 
-def test_a_carried_run_resumed_on_this_cpu_keeps_a_slot_for_each_session(tmp_path):
+def test_a_carried_run_resumed_on_this_cpu_keeps_a_slot_for_each_session(tmp_path, data, two_epochs, capsys):
     """A restored run that ``vitfly reproduce`` took further here goes back into the carry with one more CPU
-    slot: the epochs since the marker's last slot, and the fitting seconds its checkpoint's Timer gained."""
+    slot: the epochs since the marker's last slot, and the fitting seconds its checkpoint's Timer gained;
+    ``status`` counts them too."""
     carry = load_script("gpu_carry")
     run = tmp_path / "lstmnet-nostate"
     (run / "checkpoints").mkdir(parents=True)
@@ -632,3 +633,22 @@ def test_a_carried_run_resumed_on_this_cpu_keeps_a_slot_for_each_session(tmp_pat
     assert carry.caught_up({"epochs": 8, "slots": [gpu]}, run)["slots"][1]["wall_s"] == 0.0
     trained(9, 400.0)
     assert carry.caught_up({"epochs": 9, "slots": [gpu]}, run)["slots"][1]["wall_s"] == 56.0
+
+    # status: one GPU slot of 1 epoch (30 s, 20 s of them fitting), then 1 epoch here (60 s more on the Timer)
+    home = tmp_path / "home"
+    restored = home / "train" / "convnet-nostate"
+    shutil.copytree(run, restored)
+    torch.save({"epoch": 1, "callbacks": {"Timer": {"time_elapsed": {"train": 80.0}}}},
+               restored / "checkpoints" / "last.ckpt")
+    (restored / "unfinished.json").write_text(json.dumps({
+        "label": "convnet-nostate", "preset": "tiny", "dataset_hash": dataset_fingerprint(data)["dataset_hash"],
+        "epochs": 1, "slots": [{"device": "NVIDIA H200", "epochs": [0, 1], "wall_s": 30.0, "fit_s": 20.0}]}))
+    config = yaml.safe_load(two_epochs.read_text())
+    config["presets"]["tiny"]["train"]["overrides"]["max_epochs"] = 3
+    three = tmp_path / "three.yaml"
+    three.write_text(yaml.safe_dump(config))
+    gpu = load_script("gpu")
+    capsys.readouterr()
+    assert gpu.main(["status", "--config", str(three), "--preset", "tiny", "--data", str(data), "--run-dir",
+                     str(home)]) == 0
+    assert "convnet-nostate  unfinished: 2/3 epochs, 1.5 min on NVIDIA H200 + cpu" in capsys.readouterr().out
