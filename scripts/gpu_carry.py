@@ -118,14 +118,12 @@ def flown_checkpoint(cfg, r) -> Path | None:
 def cpu_marker(cfg, r) -> dict:
     """The resume marker of a run started here (``vitfly reproduce``), which has none yet."""
     from scripts.gpu_plan import max_epochs
-    from vitfly.workflows.reproduce import _fit_seconds
 
     run = r.folder
     record = json.loads((run / "data.json").read_text()) if (run / "data.json").exists() else {}
-    n, fit_s = epochs_done(run), round(_fit_seconds(run), 1)
-    return {"label": r.label, "preset": cfg.preset, "dataset_hash": record.get("dataset_hash"), "epochs": n,
-            "max_epochs": max_epochs(cfg, r.run),
-            "slots": [{"device": "cpu", "epochs": [0, n], "wall_s": fit_s, "fit_s": fit_s}]}
+    # its one slot: every epoch so far, on this CPU, timed by the checkpoint's Timer
+    return caught_up({"label": r.label, "preset": cfg.preset, "dataset_hash": record.get("dataset_hash"),
+                      "max_epochs": max_epochs(cfg, r.run), "slots": []}, run)
 
 
 def caught_up(marker: dict, run: Path) -> dict:
