@@ -202,6 +202,41 @@ def test_wandb_offline_run_holds_table_plots_and_gif(tmp_path, monkeypatch):
     assert "offline-run" in run_dir
 
 
+def test_outcomes_file_is_small_and_gives_the_same_paired_statistics(tmp_path):
+    from vitfly.eval.evaluation import write_outputs
+    from vitfly.eval.paired import paired_difference
+
+    clean = [make_record("convnet", "spheres", speed, trial, seed=seed)  # no contact: every trial a success
+             for speed in (3.0, 5.0) for trial, seed in enumerate((11, 12, 13))]
+    full = sweep("expert") + clean
+    for rec in full:
+        rec.extra["scene"] = {"spheres": [[float(i), 0.0, 3.0, 1.0] for i in range(200)]}  # as sweeps store it
+        rec.path["end"] = {"time": 1.3, "position": [60.0, rec.trial / 10, 3.5]}
+        records.append_record(tmp_path / "trials.jsonl", rec)
+    _, files = write_outputs(tmp_path, with_plots=False)
+    slim = records.read_records(files["outcomes"])
+    assert files["outcomes"].name == "outcomes.jsonl.gz"
+    assert files["outcomes"].stat().st_size * 10 < (tmp_path / "trials.jsonl").stat().st_size
+    assert sorted(r.key for r in slim) == sorted(r.key for r in full)
+    by_key = {r.key: r for r in records.read_records(tmp_path / "trials.jsonl")}
+    for rec in slim:
+        assert rec.to_json() == by_key[rec.key].without_path().to_json()  # outcome, metrics, setup as flown
+        assert rec.path == {"end": {"time": 1.3, "position": [60.0, rec.trial / 10, 3.5]}} and "scene" not in rec.extra
+    # by hand: the expert collides on scene 11 at both speeds (2 of 6 pairs), convnet never: +1/3
+    for recs in (full, slim):
+        d = paired_difference(recs, "convnet", "expert", "spheres", "success")
+        assert (d.pairs, d.diff) == (6, pytest.approx(1 / 3))
+    # the same records give the same bytes; a path is asked for in one clear line
+    again = tmp_path / "again.jsonl.gz"
+    records.write_outcomes(again, reversed(records.read_records(tmp_path / "trials.jsonl")))
+    assert again.read_bytes() == files["outcomes"].read_bytes()
+    with pytest.raises(VitflyError, match="no flown path .*trials.jsonl"):
+        slim[0].path_arrays()
+    again.write_bytes(b"not gzip")
+    with pytest.raises(VitflyError, match="again.jsonl.gz: not a gzipped trials file"):
+        records.read_records(again)
+
+
 def test_reports_are_written_again_only_when_their_inputs_change(tmp_path, monkeypatch):
     from vitfly.eval.evaluation import REPORTS_STAMP, write_outputs
 
@@ -222,7 +257,7 @@ def test_reports_are_written_again_only_when_their_inputs_change(tmp_path, monke
     assert {name: p.stat().st_mtime_ns for name, p in files.items()} == mtimes
     # plots no longer wanted, another title, a missing file, a new record: written again (without plots: cheaper)
     _, files = write_outputs(tmp_path, with_plots=False, title="first")
-    assert set(files) == {"csv", "markdown", "paired"}
+    assert set(files) == {"csv", "markdown", "paired", "outcomes"}
     write_outputs(tmp_path, with_plots=False, title="second")
     assert "second" in files["markdown"].read_text()
     markdown = files["markdown"].stat().st_mtime_ns

@@ -59,7 +59,8 @@ def _reports_key(out_dir: Path, with_plots: bool, title: str | None) -> dict:
 
 
 def write_outputs(out_dir: str | Path, with_plots: bool = True, title: str | None = None) -> tuple[list, dict]:
-    """summary.csv, summary.md and the plots from every record in ``out_dir``.
+    """summary.csv, summary.md, outcomes.jsonl.gz (the records without paths) and the plots from every record
+    in ``out_dir``.
 
     Written again only when the records (or the title, or whether plots are wanted) changed since the last
     time: a resumed sweep that flew nothing new costs no redrawing (about a second a figure). The stamp
@@ -78,6 +79,8 @@ def write_outputs(out_dir: str | Path, with_plots: bool = True, title: str | Non
         if stored.get("key") == key and all(path.exists() for path in files.values()):
             return rows, files
     files = dict(write_reports(out_dir, rows, title))
+    files["outcomes"] = out_dir / records.OUTCOMES_FILE
+    records.write_outcomes(files["outcomes"], recs)
     if len({r.policy for r in recs}) > 1:  # policies flown on the same scenes: their paired differences
         files["paired"] = out_dir / "paired.csv"
         write_text(files["paired"], paired_csv(paired_rows(recs)))

@@ -20,11 +20,18 @@ Appends are crash-safe: one ``write`` per line under an exclusive ``flock`` (so 
 can share one file), then flush + fsync. A torn last line (a process killed mid-write) is skipped
 on reading and cut off before the next append. ``remove_records`` rewrites a file under the same
 lock (temporary file + rename; appenders waiting for the lock then reopen the new file).
+
+``OUTCOMES_FILE`` (``outcomes.jsonl.gz``, written with every report) holds the same records without
+their paths and stored scenes: about 150 bytes a trial (gzipped) where ``trials.jsonl`` takes tens of
+kilobytes, small enough to commit beside a published table, and enough for summaries and paired
+statistics (``read_records`` reads it); plots and path metrics need ``trials.jsonl``.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import fcntl
+import gzip
 import json
 import math
 import os
@@ -34,10 +41,12 @@ from pathlib import Path
 
 import numpy as np
 
+from vitfly.atomic import write_bytes
 from vitfly.errors import VitflyError
 from vitfly.eval.fingerprint import differences
 
 TRIALS_FILE = "trials.jsonl"
+OUTCOMES_FILE = "outcomes.jsonl.gz"  # the records without their paths: what a published table commits
 RECORD_SCHEMA = "vitfly.trial"
 RECORD_VERSION = 2  # 2: keyed by setup_id; success_paper / success_strict; the path's end state
 PATH_DECIMALS = {"time": 6, "position": 4, "velocity": 4, "command": 4}
@@ -70,6 +79,9 @@ class TrialRecord:
     def path_arrays(self) -> dict[str, np.ndarray]:
         """The path as numpy arrays (float64; contact as bool); ``end_time`` (s) and ``end_position`` (3,)
         are the trial's end state (nan when not stored)."""
+        if "time" not in self.path:
+            raise VitflyError(f"trial {self.key}: the record holds no flown path (read from {OUTCOMES_FILE}?); "
+                              f"plots and path metrics need {TRIALS_FILE}")
         out = {k: np.asarray(self.path[k], dtype=np.float64) for k in ("time", "position", "velocity", "command")}
         out["contact"] = np.asarray(self.path["contact"], dtype=bool)
         end = self.path.get("end") or {}
@@ -119,6 +131,12 @@ class TrialRecord:
             )
         except (KeyError, TypeError, ValueError, AttributeError) as err:
             raise VitflyError(f"{where}: not a vitfly trial record ({type(err).__name__}: {err})") from None
+
+
+    def without_path(self) -> TrialRecord:
+        """This record as ``OUTCOMES_FILE`` stores it: the path reduced to its end state, no stored scene."""
+        end = {"end": self.path["end"]} if "end" in self.path else {}
+        return dataclasses.replace(self, path=end, extra={k: v for k, v in self.extra.items() if k != "scene"})
 
 
 def trial_key(policy: str, setup_id: str, env: str, speed: float, trial: int) -> tuple[str, str, str, float, int]:
@@ -218,12 +236,26 @@ def append_record(path: str | Path, record: TrialRecord) -> None:
         os.close(fd)  # closing releases the lock
 
 
+def write_outcomes(path: str | Path, recs: Iterable[TrialRecord]) -> None:
+    """``recs`` without their paths (``TrialRecord.without_path``), sorted by key, gzipped, atomically; the same
+    records give the same bytes."""
+    lines = "".join(r.without_path().to_json() + "\n" for r in sorted(recs, key=lambda r: r.key))
+    write_bytes(path, gzip.compress(lines.encode(), mtime=0))
+
+
 def read_records(path: str | Path) -> list[TrialRecord]:
-    """All complete records of one trials file (a torn last line is skipped; a later duplicate key wins)."""
+    """All complete records of one trials file, or of an outcomes file (``*.gz``); a torn last line is skipped,
+    a later duplicate key wins."""
     path = Path(path)
     if not path.exists():
         return []
-    text = path.read_bytes().decode("utf-8", errors="replace")
+    data = path.read_bytes()
+    if path.suffix == ".gz":
+        try:
+            data = gzip.decompress(data)
+        except (OSError, EOFError) as err:
+            raise VitflyError(f"{path}: not a gzipped trials file ({err})") from None
+    text = data.decode("utf-8", errors="replace")
     lines = text.split("\n")
     if not text.endswith("\n"):
         lines = lines[:-1]  # torn tail: the trial was in flight
