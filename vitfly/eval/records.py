@@ -132,7 +132,6 @@ class TrialRecord:
         except (KeyError, TypeError, ValueError, AttributeError) as err:
             raise VitflyError(f"{where}: not a vitfly trial record ({type(err).__name__}: {err})") from None
 
-
     def without_path(self) -> TrialRecord:
         """This record as ``OUTCOMES_FILE`` stores it: the path reduced to its end state, no stored scene."""
         end = {"end": self.path["end"]} if "end" in self.path else {}
