@@ -237,6 +237,33 @@ def test_outcomes_file_is_small_and_gives_the_same_paired_statistics(tmp_path):
         records.read_records(again)
 
 
+def test_a_published_outcomes_file_alone_gives_the_same_reports(tmp_path):
+    import shutil
+
+    from vitfly.eval.config import SweepConfig
+    from vitfly.eval.evaluation import run_evaluation, write_outputs
+
+    flown, published = tmp_path / "flown", tmp_path / "published"
+    flown.mkdir(), published.mkdir()
+    for rec in sweep("expert") + sweep("convnet"):
+        records.append_record(flown / "trials.jsonl", rec)
+    _, files = write_outputs(flown, with_plots=True)
+    shutil.copy(files["outcomes"], published)  # what a results page commits
+    mtime = (published / records.OUTCOMES_FILE).stat().st_mtime_ns
+    _, again = write_outputs(published, with_plots=True)
+    for name in ("csv", "markdown", "paired"):
+        assert again[name].read_bytes() == files[name].read_bytes()
+    # the source itself is not rewritten; paths cannot be drawn from records without them
+    assert (published / records.OUTCOMES_FILE).stat().st_mtime_ns == mtime
+    assert "rates_vs_speed" in again and not any(name.startswith("paths_") for name in again)
+    # flying into it would drop the published trials from its outcomes file: refused before any trial
+    with pytest.raises(VitflyError, match="published outcomes.jsonl.gz and no trials"):
+        run_evaluation(SweepConfig(policy="straight", env=["spheres"], speeds=[3.0], trials=1, out=str(published)))
+    assert not list(published.glob("trials*.jsonl"))
+    with pytest.raises(VitflyError, match="no finished trials"):
+        write_outputs(tmp_path / "empty")
+
+
 def test_reports_are_written_again_only_when_their_inputs_change(tmp_path, monkeypatch):
     from vitfly.eval.evaluation import REPORTS_STAMP, write_outputs
 

@@ -68,7 +68,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--wandb-project", help="also log the summary and plots to this wandb project")
     parser.add_argument("--merge", nargs="+", metavar="DIR",
                         help="only merge the trials of these sweep directories into --out and write its reports")
-    parser.add_argument("--report-only", action="store_true", help="only (re)write the reports of --out")
+    parser.add_argument("--report-only", action="store_true",
+                        help="only (re)write the reports of --out (from its trials*.jsonl, else its outcomes.jsonl.gz)")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
 
 

@@ -2,7 +2,8 @@
 
 Reports always cover every record in the output directory, so several policies evaluated into one
 directory (or shards that share it, or merged directories) give one comparison; a directory where
-one label holds trials of two setups (e.g. two checkpoints) is refused rather than reported.
+one label holds trials of two setups (e.g. two checkpoints) is refused rather than reported. A directory
+that holds only ``outcomes.jsonl.gz`` (a published table) is reported from it, without the path plots.
 """
 
 from __future__ import annotations
@@ -53,23 +54,24 @@ def _reports_key(out_dir: Path, with_plots: bool, title: str | None) -> dict:
     from vitfly import __version__
 
     digest = hashlib.sha256()
-    for path in records.iter_trial_files(out_dir):
+    for path in records.report_files(out_dir):
         digest.update(path.name.encode() + b"\0" + path.read_bytes() + b"\0")
     return {"records_sha256": digest.hexdigest(), "plots": with_plots, "title": title, "vitfly_version": __version__}
 
 
 def write_outputs(out_dir: str | Path, with_plots: bool = True, title: str | None = None) -> tuple[list, dict]:
     """summary.csv, summary.md, outcomes.jsonl.gz (the records without paths) and the plots from every record
-    in ``out_dir``.
+    in ``out_dir`` (``records.report_files``: its trial files, else its outcomes file).
 
     Written again only when the records (or the title, or whether plots are wanted) changed since the last
     time: a resumed sweep that flew nothing new costs no redrawing (about a second a figure). The stamp
     ``reports.json`` is written last, so reports cut short by a kill are written again.
     """
     out_dir = Path(out_dir)
-    recs = records.read_sweep(out_dir)
+    sources = records.report_files(out_dir)
+    recs = records.merge_records(records.read_records(p) for p in sources)
     if not recs:
-        raise VitflyError(f"{out_dir}: no finished trials (trials*.jsonl) to report on")
+        raise VitflyError(f"{out_dir}: no finished trials (trials*.jsonl or {records.OUTCOMES_FILE}) to report on")
     records.check_consistent(recs, str(out_dir))
     rows = summarize(recs)
     key, stamp = _reports_key(out_dir, with_plots, title), out_dir / REPORTS_STAMP
@@ -80,7 +82,8 @@ def write_outputs(out_dir: str | Path, with_plots: bool = True, title: str | Non
             return rows, files
     files = dict(write_reports(out_dir, rows, title))
     files["outcomes"] = out_dir / records.OUTCOMES_FILE
-    records.write_outcomes(files["outcomes"], recs)
+    if sources != [files["outcomes"]]:  # else it is what these reports were read from
+        records.write_outcomes(files["outcomes"], recs)
     if len({r.policy for r in recs}) > 1:  # policies flown on the same scenes: their paired differences
         files["paired"] = out_dir / "paired.csv"
         write_text(files["paired"], paired_csv(paired_rows(recs)))
@@ -144,6 +147,10 @@ def merge_into(out_dir: str | Path, sources: Sequence[str | Path]) -> int:
 
 def run_evaluation(cfg: SweepConfig, progress: bool = True) -> EvaluationResult:
     """Fly the sweep (resuming), then write every report of ``cfg.out``."""
+    if records.report_files(cfg.out) == [Path(cfg.out) / records.OUTCOMES_FILE]:
+        # its reports would then cover the new trials alone, and its outcomes file lose the published ones
+        raise VitflyError(f"{cfg.out}: holds a published {records.OUTCOMES_FILE} and no trials*.jsonl; fly into "
+                          "another --out, or rewrite its reports with --report-only")
     outcome = run_sweep(cfg, progress=progress)
     rows, files = write_outputs(cfg.out, cfg.plots)
     if cfg.gif:

@@ -133,7 +133,9 @@ def scene_for_paths(records: Sequence[TrialRecord], env: str) -> tuple[int | Non
 
 def write_standard_plots(out_dir: str | Path, rows: Sequence[dict], records: Sequence[TrialRecord],
                          scene_loader=None) -> dict[str, Path]:
-    """All summary plots into ``out_dir``; ``scene_loader(env, preset, seed)`` draws obstacles under paths."""
+    """All summary plots into ``out_dir``; ``scene_loader(env, preset, seed)`` draws obstacles under paths.
+
+    ``paths_<env>.png`` only where the records hold their paths (not those of an outcomes file)."""
     out = Path(out_dir)
     written = {
         "rates_vs_speed": plot_vs_speed(
@@ -149,8 +151,9 @@ def write_standard_plots(out_dir: str | Path, rows: Sequence[dict], records: Seq
             rows, [("energy_cost", "energy cost (1/s²)", False), ("cmd_acc", "commanded acc. (1/s²)", False)],
             out / "energy_vs_speed.png", "command characteristics"),
     }
-    for env in sorted({r.env for r in records}):
-        seed, recs = scene_for_paths(records, env)
+    with_paths = [r for r in records if r.has_path]
+    for env in sorted({r.env for r in with_paths}):
+        seed, recs = scene_for_paths(with_paths, env)
         scene = scene_loader(env, recs[0].preset, seed) if scene_loader is not None else None
         written[f"paths_{env}"] = plot_paths(
             recs, out / f"paths_{env}.png", scene,

@@ -24,7 +24,8 @@ lock (temporary file + rename; appenders waiting for the lock then reopen the ne
 ``OUTCOMES_FILE`` (``outcomes.jsonl.gz``, written with every report) holds the same records without
 their paths and stored scenes: about 150 bytes a trial (gzipped) where ``trials.jsonl`` takes tens of
 kilobytes, small enough to commit beside a published table, and enough for summaries and paired
-statistics (``read_records`` reads it); plots and path metrics need ``trials.jsonl``.
+statistics (``read_records`` reads it); plots and path metrics need ``trials.jsonl``. A directory that holds
+only an outcomes file (a published table) is reported from it (``report_files``).
 """
 
 from __future__ import annotations
@@ -76,10 +77,15 @@ class TrialRecord:
     def key(self) -> tuple[str, str, str, float, int]:
         return trial_key(self.policy, self.setup_id, self.env, self.speed, self.trial)
 
+    @property
+    def has_path(self) -> bool:
+        """False for a record read from ``OUTCOMES_FILE``: only the end state of its path is kept."""
+        return "time" in self.path
+
     def path_arrays(self) -> dict[str, np.ndarray]:
         """The path as numpy arrays (float64; contact as bool); ``end_time`` (s) and ``end_position`` (3,)
         are the trial's end state (nan when not stored)."""
-        if "time" not in self.path:
+        if not self.has_path:
             raise VitflyError(f"trial {self.key}: the record holds no flown path (read from {OUTCOMES_FILE}?); "
                               f"plots and path metrics need {TRIALS_FILE}")
         out = {k: np.asarray(self.path[k], dtype=np.float64) for k in ("time", "position", "velocity", "command")}
@@ -308,6 +314,16 @@ def remove_records(path: str | Path, drop: Callable[[TrialRecord], bool]) -> int
 
 def iter_trial_files(out_dir: str | Path) -> Iterator[Path]:
     yield from sorted(Path(out_dir).glob("trials*.jsonl"))
+
+
+def report_files(out_dir: str | Path) -> list[Path]:
+    """What the reports of ``out_dir`` are made from: its ``trials*.jsonl``, else its ``OUTCOMES_FILE`` alone.
+
+    Never both: the outcomes file is written from the trial files, and still holds the records a rerun has
+    since replaced (another setup under the same label)."""
+    trial_files = list(iter_trial_files(out_dir))
+    outcomes = Path(out_dir) / OUTCOMES_FILE
+    return trial_files or ([outcomes] if outcomes.exists() else [])
 
 
 def read_sweep(out_dir: str | Path) -> list[TrialRecord]:
