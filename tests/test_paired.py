@@ -183,3 +183,77 @@ def test_paired_csv_rows_per_speed_and_pooled():
     assert text.splitlines()[0].startswith("env,metric,a,b,speed,pairs")
     # 5 of 5 discordant for a: Clopper-Pearson lower bound 0.025 ** (1 / 5) = 0.4782 -> 2 * 0.4782 - 1
     assert text.splitlines()[1] == "spheres,success,a,b,3,5,5,1,0,1,-0.0436475,1,0.0625,cannot tell"
+
+
+def test_paired_findings_figure_draws_each_claim_where_its_interval_lies(tmp_path):
+    import matplotlib.colors as mcolors
+
+    from vitfly.eval.paired_findings import PairedFinding
+    from vitfly.eval.paper_figures import (
+        DECIDED_COLOURS,
+        draw_paired_differences,
+        finding_panels,
+        paired_findings_figure,
+    )
+
+    # collisions per trial, ViT+LSTM 1 a scene: ConvNet 2 (-1, for), LSTMnet 1 (0, cannot tell), UNet+LSTM 0 (+1,
+    # against: fewer collisions is better); every scene alike, so each interval is its difference alone
+    spheres = (flights("vit_lstm", lambda k: 1) + flights("convnet", lambda k: 2) + flights("lstmnet", lambda k: 1)
+               + flights("unet_lstm", lambda k: 0))
+    finding = lowest_collisions_fast(spheres)
+    by_b = {d.b: d for d in finding.comparisons}
+    assert {b: (d.diff, d.low, d.high) for b, d in by_b.items()} == {
+        "convnet": (-1.0, -1.0, -1.0), "lstmnet": (0.0, 0.0, 0.0), "unet_lstm": (1.0, 1.0, 1.0)}
+    # success in points: ViT+LSTM 30 of 30, ConvNet 0 of 30: +100 [+77, +100] (test_findings_table_and_lead_table)
+    success = paired_difference(flights("vit_lstm", lambda k: 0) + flights("convnet", lambda k: 1),
+                                "vit_lstm", "convnet", "spheres", "success")
+    fig = draw_paired_differences([("collisions", finding.comparisons), ("success", [success])])
+    ax_collisions, ax_success = fig.axes
+    colour = {k: mcolors.to_rgba(c) for k, c in DECIDED_COLOURS.items()}
+    dots = [line for line in ax_collisions.lines if line.get_marker() == "o"]
+    drawn = sorted((float(line.get_xdata()[0]), mcolors.to_rgba(line.get_color())) for line in dots)
+    assert drawn == [(-1.0, colour["for"]), (0.0, colour["cannot tell"]), (1.0, colour["against"])]
+    bars = [seg for coll in ax_collisions.collections for seg in coll.get_segments()]
+    assert sorted((s[0][0], s[1][0]) for s in bars) == [(-1.0, -1.0), (0.0, 0.0), (1.0, 1.0)]
+    (dot,) = [line for line in ax_success.lines if line.get_marker() == "o"]
+    (bar,) = ax_success.collections[0].get_segments()
+    assert dot.get_xdata()[0] == 100.0 and round(bar[0][0]) == 77 and bar[1][0] == 100.0
+    assert [t.get_text() for t in ax_success.get_yticklabels()] == ["ViT+LSTM - ConvNet, spheres, 7 m/s (30 pairs)"]
+    assert ax_success.get_xlabel() == "A - B: success (points)"
+    with pytest.raises(ValueError, match="one panel, one metric"):
+        draw_paired_differences([("mixed", [success, by_b["convnet"]])])
+
+    # a finding on two metrics: a panel each; none compared: no figure
+    two = PairedFinding("two", "claim", "success", "rule", "partly", [by_b["convnet"], success])
+    assert finding_panels([two, lowest_collisions_fast([])]) == [("claim: partly", [by_b["convnet"]]),
+                                                                  ("claim: partly", [success])]
+    path = paired_findings_figure([two, lowest_collisions_fast([])], tmp_path / "paired.png")
+    assert path.stat().st_size > 10_000
+    assert paired_findings_figure([lowest_collisions_fast([])], tmp_path / "none.png") is None
+    assert not (tmp_path / "none.png").exists()
+
+
+def test_paired_figure_script_draws_a_published_outcomes_file(tmp_path, capsys, monkeypatch):
+    import importlib
+    from pathlib import Path
+
+    from vitfly.eval.records import write_outcomes
+
+    monkeypatch.syspath_prepend(str(Path(__file__).resolve().parents[1]))
+    script = importlib.import_module("scripts.paired_figure")
+    recs = (flights("a", lambda k: 0) + flights("b", lambda k: 1) + flights("a", lambda k: 0, speed=3.0)
+            + flights("b", lambda k: k % 2, speed=3.0))
+    write_outcomes(tmp_path / "outcomes.jsonl.gz", recs)
+    out = tmp_path / "fig.png"
+    assert script.main([str(tmp_path), "--pair", "a", "b", "--envs", "spheres", "--metrics", "success",
+                        "--out", str(out)]) == 0
+    lines = capsys.readouterr().out.splitlines()
+    # 7 m/s: a 30 of 30, b 0 of 30, as test_findings_table_and_lead_table; 3 m/s: b fails on the 15 odd scenes, so
+    # 15 discordant pairs, all a's: Clopper-Pearson's lower bound 0.025 ** (1 / 15) = 0.782 makes the difference's
+    # (2 * 0.782 - 1) * 15 / 30 = +28 points; McNemar p = 2 * 0.5 ** 15 = 6.1e-05
+    assert lines[0] == "success    a - b, spheres, 3 m/s: +50 points [+28, +50], 30 pairs, McNemar p=6.1e-05"
+    assert lines[1] == "success    a - b, spheres, 7 m/s: +100 points [+77, +100], 30 pairs, McNemar p=1.9e-09"
+    assert lines[2].startswith("success    a - b, spheres, 3/7 m/s: +75 points [")  # the 60 pairs pooled
+    assert out.stat().st_size > 10_000
+    assert script.main([str(tmp_path), "--pair", "a", "c", "--out", str(tmp_path / "no.png")]) == 1
+    assert "no shared trials of c (flown: a, b)" in capsys.readouterr().err and not (tmp_path / "no.png").exists()

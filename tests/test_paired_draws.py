@@ -26,6 +26,8 @@ def test_draw_labels():
     assert split_draw("resnet18") == ("resnet18", None) and split_draw("expert") == ("expert", None)
     assert label("vit_lstm-nostate-s2") == "ViT+LSTM (no state), seed 2"
     assert label("convnet-s10") == "ConvNet, seed 10" and label("convnet") == "ConvNet"
+    assert label("convnet-state") == "ConvNet" and label("lstmnet-state-s1") == "LSTMnet, seed 1"  # run folders
+    assert label("foo-state") == "foo-state"
 
 
 def test_two_draws_by_hand():

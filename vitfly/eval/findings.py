@@ -28,6 +28,7 @@ from vitfly.eval.paper_tables import MODEL_LABELS, paper_success
 LEARNED = ("convnet", "lstmnet", "unet_lstm", "vit", "vit_lstm", "resnet18")
 VIT_MODELS = ("vit", "vit_lstm")
 NOSTATE_SUFFIX = "-nostate"
+STATE_SUFFIX = "-state"  # run folders with the state input (vitfly.workflows.reproduce_config), e.g. convnet-state
 DRAW_PATTERN = re.compile(r"^(?P<run>.+)-s(?P<seed>\d+)$")  # convnet-s1, vit_lstm-nostate-s2
 PAPER_TREES_7MPS_SUCCESS = {"vit": 80, "vit_lstm": 70}  # paper, supplementary: Trees success at 7 m/s (%)
 # paper, results text: time in collision per obstacle in Spheres (s) at 3 and 7 m/s
@@ -71,9 +72,12 @@ def split_draw(policy: str) -> tuple[str, int | None]:
 
 
 def label(model: str) -> str:
-    """A policy label for people: ConvNet, ViT+LSTM (no state), ConvNet, seed 3."""
+    """A policy label for people: ConvNet, ViT+LSTM (no state), ConvNet, seed 3. A run folder's name with the state
+    (``convnet-state``, as the paper-budget runs are named) reads as its model's."""
     run, seed = split_draw(model)
     base = run[: -len(NOSTATE_SUFFIX)] if run.endswith(NOSTATE_SUFFIX) else run
+    if base == run and run.endswith(STATE_SUFFIX) and run[: -len(STATE_SUFFIX)] in MODEL_LABELS:
+        run = base = run[: -len(STATE_SUFFIX)]
     text = MODEL_LABELS.get(base, base) + (" (no state)" if base != run else "")
     return text if seed is None else f"{text}, seed {seed}"
 

@@ -8,7 +8,9 @@
   scene with a band of +-0.1 standard deviations (the paper's path-distribution figure);
 - ``mean_paths_3d_figure``: the same mean paths in 3D;
 - ``modular_baselines_figure``: collision rate and actual vs desired forward speed of the modular planners beside
-  the networks, and the planners' replan compute time (the paper's modular-baselines figure).
+  the networks, and the planners' replan compute time (the paper's modular-baselines figure);
+- ``paired_findings_figure``: the verdicts as a picture, every claim's paired difference A - B with its 95 %
+  interval, coloured by what it decides (``draw_paired_differences`` draws any list of paired differences).
 
 Figures are ``matplotlib.figure.Figure`` objects saved atomically (no pyplot state).
 """
@@ -20,13 +22,18 @@ from pathlib import Path
 
 import numpy as np
 from matplotlib.figure import Figure
+from matplotlib.lines import Line2D
 
+from vitfly.eval.findings import label
+from vitfly.eval.paired import OUTCOMES, PairedDifference
+from vitfly.eval.paired_findings import METRIC_WORDS
 from vitfly.eval.plots import _save, plot_vs_speed, policy_colours
 from vitfly.eval.records import TrialRecord
 from vitfly.eval.repeats import mean_path
 from vitfly.sim.visualize import draw_scene, format_views
 
 BAND_SIGMA = 0.1  # the paper's band: mean +- 0.1 sigma
+DECIDED_COLOURS = {"for": "tab:green", "against": "tab:red", "cannot tell": "0.55"}  # of a claim "A better than B"
 X_STEP_M = 0.25  # resampling grid of the mean paths
 
 
@@ -168,3 +175,64 @@ def draw_modular_baselines(rows: Sequence[dict], recs: Sequence[TrialRecord], ti
         fig.legend(handles, labels, loc="outside lower center", ncols=min(len(labels), 6))
     fig.suptitle(title or "modular baselines vs end-to-end: spheres, the same scenes for every policy")
     return fig
+
+
+def paired_findings_figure(findings: Sequence, path: str | Path, title: str = "") -> Path | None:
+    """``draw_paired_differences`` of ``vitfly.eval.paired_findings.PairedFinding``s, a panel per finding and metric
+    (its claim and verdict above it), saved to ``path``; None when no finding has a comparison."""
+    groups = finding_panels(findings)
+    if not groups:
+        return None
+    return _save(draw_paired_differences(groups, title or "the paper's findings, decided on pairs"), Path(path))
+
+
+def finding_panels(findings: Sequence) -> list[tuple[str, list[PairedDifference]]]:
+    """(claim and verdict, its comparisons on one metric) per finding and metric; findings without any: none."""
+    return [(f"{f.claim}: {f.verdict}", [d for d in f.comparisons if d.metric == metric])
+            for f in findings for metric in dict.fromkeys(d.metric for d in f.comparisons)]
+
+
+def decision(d: PairedDifference) -> str:
+    """What ``d`` says of the claim "``d.a`` better than ``d.b``": for, against or cannot tell."""
+    return {d.a: "for", d.b: "against"}.get(d.better, "cannot tell")
+
+
+def draw_paired_differences(groups: Sequence[tuple[str, Sequence[PairedDifference]]], title: str = "") -> Figure:
+    """One panel per (name, differences) group, one row per difference: A - B (a dot; success in points) and its
+    95 % paired interval (a bar), green where it decides the claim "A better than B" for it, red against (for a
+    lower-is-better metric a difference below 0 is for), grey where it cannot tell; a line at 0. The differences of
+    one group share a metric (its x axis)."""
+    heights = [len(diffs) + 1.5 for _, diffs in groups]
+    fig = Figure(figsize=(9.0, 0.3 * sum(heights) + 0.8), layout="constrained")
+    axes = fig.subplots(len(groups), 1, height_ratios=heights, squeeze=False)[:, 0]
+    for ax, (name, diffs) in zip(axes, groups, strict=True):
+        metric = diffs[0].metric
+        if any(d.metric != metric for d in diffs):
+            raise ValueError(f"{name}: one panel, one metric (got {sorted({d.metric for d in diffs})})")
+        scale = 100.0 if metric in OUTCOMES else 1.0
+        rows = np.arange(len(diffs))[::-1]  # the first difference on top
+        for y, d in zip(rows, diffs, strict=True):
+            colour = DECIDED_COLOURS[decision(d)]
+            ax.hlines(y, scale * d.low, scale * d.high, color=colour, lw=2.5)
+            ax.plot(scale * d.diff, y, "o", color=colour, ms=5)
+        ax.axvline(0.0, color="0.2", lw=0.8)
+        ax.set_yticks(rows, [_difference_label(d) for d in diffs], fontsize=8)
+        ax.set_ylim(-0.7, len(diffs) - 0.3)
+        ax.set_xlabel(f"A - B: {METRIC_WORDS.get(metric, metric)}" + (" (points)" if metric in OUTCOMES else ""),
+                      fontsize=8)
+        ax.set_title(name, loc="left", fontsize=9)
+        ax.grid(axis="x", alpha=0.3)
+    words = {"for": "A better (the interval excludes 0)", "against": "B better (the interval excludes 0)",
+             "cannot tell": "cannot tell (the interval holds 0)"}
+    handles = [Line2D([], [], color=c, lw=2.5, marker="o", label=words[k]) for k, c in DECIDED_COLOURS.items()]
+    fig.legend(handles=handles, loc="outside lower center", ncols=3, fontsize=8)
+    fig.suptitle(title or "paired differences A - B with their 95 % intervals")
+    return fig
+
+
+def _difference_label(d: PairedDifference) -> str:
+    """e.g. "ViT+LSTM - ConvNet (3 draws), spheres, 3-7 m/s pooled (300 pairs)"."""
+    a, b = (label(p) + (f" ({n} draws)" if n > 1 else "") for p, n in ((d.a, d.draws_a), (d.b, d.draws_b)))
+    speeds = f"{d.speeds[0]:g} m/s" if len(d.speeds) == 1 else f"{min(d.speeds):g}-{max(d.speeds):g} m/s pooled"
+    borrowed = ", the draws' spread borrowed" if d.borrowed_sd else ""
+    return f"{a} - {b}, {d.env}, {speeds} ({d.pairs} pairs{borrowed})"

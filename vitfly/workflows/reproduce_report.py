@@ -184,6 +184,9 @@ def stage_report(cfg: ReproduceConfig) -> dict:
     paired = paired_findings(recs["spheres"], recs["trees"], recs["window"], recs["ablation"], recs["modular"],
                              draws=draws)
     paired_md = paired_markdown(paired, recs, draws)
+    paired_png = paper_figures.paired_findings_figure(paired, figures / "paired_findings.png")
+    if paired_png is not None:
+        files["paired_findings"] = paired_png
     text = results_markdown(cfg, findings_markdown(findings), files, ablation_md, latency_md, lateral, paired_md,
                             modular_md, draws_markdown(cfg, rows))
     write_text(out / "results.md", text)
@@ -317,6 +320,8 @@ def results_markdown(cfg: ReproduceConfig, findings_md: str, files: dict[str, Pa
            "normal term with their pooled variance). The findings table above reads each run's own draw."
            if draws_md else ""),
         "",
+        *([f"![every claim's paired difference and its interval]({rel['paired_findings']})", ""]
+          if "paired_findings" in rel else []),
         paired_md or "(no trials yet)\n",
         *(["## Training draws", "",
            "Runs trained again with other seeds (train.draws: the weights' initialisation, the data order and the "

@@ -1,0 +1,101 @@
+"""Paired differences as a picture, from the trial records of any sweep: a panel per metric, a row per pair of
+policies, env and speed (and all speeds pooled), each difference A - B with its paired 95 % interval
+(``vitfly.eval.paired``), green where A is decided better, red where B is, grey where the trials cannot tell.
+A published folder's ``outcomes.jsonl.gz`` is enough (no flying). Prints every difference as the figure shows it.
+
+    python scripts/paired_figure.py docs/results/paper_budget/ablation_native/outcomes.jsonl.gz \
+        --pair convnet-state convnet-nostate --pair lstmnet-state lstmnet-nostate \
+        --draws convnet-state=convnet-state,convnet-state-s1,convnet-state-s2 \
+                convnet-nostate=convnet-nostate,convnet-nostate-s1,convnet-nostate-s2 \
+        --out docs/results/paper_budget/ablation_native/state_effect.png
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+from vitfly.errors import VitflyError
+from vitfly.eval.paired import HIGHER_IS_BETTER, PairedDifference, paired_difference
+from vitfly.eval.paired_findings import METRIC_WORDS
+from vitfly.eval.paper_figures import draw_paired_differences
+from vitfly.eval.plots import _save
+from vitfly.eval.records import merge_records, read_records, report_files
+
+
+def parse_draws(items: list[str]) -> dict[str, list[str]]:
+    """``RUN=LABEL,LABEL,...`` items as {run: [labels]}."""
+    draws = {}
+    for item in items:
+        run, sep, labels = item.partition("=")
+        if not sep or not run or not labels:
+            raise VitflyError(f"--draws {item!r}: expected RUN=LABEL,LABEL,... (the run's own label among them)")
+        draws[run] = labels.split(",")
+    return draws
+
+
+def read(sources: list[str]):
+    """The records of trial files, outcomes files or sweep folders, merged by key."""
+    groups = []
+    for source in map(Path, sources):
+        files = report_files(source) if source.is_dir() else [source]
+        if not files or not all(f.exists() for f in files):
+            raise VitflyError(f"{source}: no trials*.jsonl or outcomes.jsonl.gz there")
+        groups += [read_records(f) for f in files]
+    return merge_records(groups)
+
+
+def differences(records, pairs: list[list[str]], envs: list[str], metrics: list[str],
+                draws: dict[str, list[str]]) -> list[tuple[str, list[PairedDifference]]]:
+    """(metric, its differences) per metric: per pair and env, each speed both flew, then all speeds pooled."""
+    groups = []
+    for metric in metrics:
+        diffs = []
+        for a, b in pairs:
+            for env in envs:
+                speeds = sorted({float(r.speed) for r in records if r.policy == a and r.env == env})
+                for sel in [[s] for s in speeds] + ([None] if len(speeds) > 1 else []):
+                    d = paired_difference(records, a, b, env, metric, sel, draws=draws)
+                    if d is not None:
+                        diffs.append(d)
+        if diffs:
+            groups.append((METRIC_WORDS.get(metric, metric), diffs))
+    return groups
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
+                                formatter_class=argparse.ArgumentDefaultsHelpFormatter)
+    p.add_argument("records", nargs="+", help="trials*.jsonl, outcomes.jsonl.gz or sweep folders")
+    p.add_argument("--pair", nargs=2, action="append", required=True, metavar=("A", "B"),
+                   help="draw A - B (repeat for more pairs)")
+    p.add_argument("--draws", nargs="+", default=[], metavar="RUN=LABEL,...",
+                   help="a run's training draws: compared by their mean (vitfly.eval.paired)")
+    p.add_argument("--envs", nargs="+", default=["spheres", "trees"])
+    p.add_argument("--metrics", nargs="+", default=["success", "collisions"], choices=sorted(HIGHER_IS_BETTER))
+    p.add_argument("--title", default="")
+    p.add_argument("--out", required=True, help="the figure (.png)")
+    args = p.parse_args(argv)
+    try:
+        records = read(args.records)
+        groups = differences(records, args.pair, args.envs, args.metrics, parse_draws(args.draws))
+        flown = {r.policy for r in records}
+        missing = sorted({q for pair in args.pair for q in pair} - flown)
+        if missing or not groups:
+            raise VitflyError(f"{', '.join(args.records)}: no shared trials of "
+                              + (", ".join(missing) if missing else "these pairs in " + ", ".join(args.envs))
+                              + f" (flown: {', '.join(sorted(flown))})")
+    except VitflyError as err:
+        print(f"paired_figure: {err}", file=sys.stderr)
+        return 1
+    for _, diffs in groups:
+        for d in diffs:
+            print(f"{d.metric:<10} {d.a} - {d.b}, {d.env}, {'/'.join(f'{s:g}' for s in d.speeds)} m/s: {d.text()}")
+    title = args.title or "paired differences A - B with their 95 % intervals"
+    print(f"wrote {_save(draw_paired_differences(groups, title), Path(args.out))}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
