@@ -67,8 +67,8 @@ def test_paper_first_slot_starts_the_lead_and_leaves_convnet_to_the_cpu():
     slot = next_slot(cfg, rows(cfg, done={"convnet-state", "convnet-nostate"}), ROOM)
     assert labels(slot.start) == ["vit_lstm-state"] and slot.carry == []
     assert slot.back_bytes == 22_433_865  # carried back next time with bf16 moments
-    assert labels(slot.on_cpu) == ["lstmnet-state", "lstmnet-nostate", "convnet-state-s1", "convnet-state-s2",
-                                   "convnet-nostate-s1", "convnet-nostate-s2"]
+    assert labels(slot.on_cpu) == ["lstmnet-state", "lstmnet-nostate", "lstmnet-state-s1", "convnet-state-s1",
+                                   "convnet-state-s2", "lstmnet-nostate-s1", "convnet-nostate-s1", "convnet-nostate-s2"]
     assert "would not fit the next carry" in slot.wait["vit-state"]  # 22.43e6 + 19.55e6 > 33.55e6
     assert list(slot.wait) == ["vit-state", "unet_lstm-state", "vit_lstm-nostate", "vit-nostate", "unet_lstm-nostate"]
 
