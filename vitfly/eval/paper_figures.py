@@ -26,7 +26,7 @@ from matplotlib.lines import Line2D
 
 from vitfly.eval.findings import label
 from vitfly.eval.paired import OUTCOMES, PairedDifference
-from vitfly.eval.paired_findings import METRIC_WORDS
+from vitfly.eval.paired_findings import METRIC_WORDS, PairedFinding
 from vitfly.eval.plots import _save, plot_vs_speed, policy_colours
 from vitfly.eval.records import TrialRecord
 from vitfly.eval.repeats import mean_path
@@ -177,7 +177,7 @@ def draw_modular_baselines(rows: Sequence[dict], recs: Sequence[TrialRecord], ti
     return fig
 
 
-def paired_findings_figure(findings: Sequence, path: str | Path, title: str = "") -> Path | None:
+def paired_findings_figure(findings: Sequence[PairedFinding], path: str | Path, title: str = "") -> Path | None:
     """``draw_paired_differences`` of ``vitfly.eval.paired_findings.PairedFinding``s, a panel per finding and metric
     (its claim and verdict above it), saved to ``path``; None when no finding has a comparison."""
     groups = finding_panels(findings)
@@ -186,7 +186,7 @@ def paired_findings_figure(findings: Sequence, path: str | Path, title: str = ""
     return _save(draw_paired_differences(groups, title or "the paper's findings, decided on pairs"), Path(path))
 
 
-def finding_panels(findings: Sequence) -> list[tuple[str, list[PairedDifference]]]:
+def finding_panels(findings: Sequence[PairedFinding]) -> list[tuple[str, list[PairedDifference]]]:
     """(claim and verdict, its comparisons on one metric) per finding and metric; findings without any: none."""
     return [(f"{f.claim}: {f.verdict}", [d for d in f.comparisons if d.metric == metric])
             for f in findings for metric in dict.fromkeys(d.metric for d in f.comparisons)]
