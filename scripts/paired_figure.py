@@ -3,23 +3,28 @@ policies, env and speed (and all speeds pooled), each difference A - B with its 
 (``vitfly.eval.paired``), green where A is decided better, red where B is, grey where the trials cannot tell.
 A published folder's ``outcomes.jsonl.gz`` is enough (no flying). Prints every difference as the figure shows it.
 
+Given a study's ``results.json`` (``vitfly reproduce``) instead, it draws that study's paired findings as the
+report does (``figures/paired_findings.png``), from the numbers the JSON keeps; no ``--pair`` then.
+
     python scripts/paired_figure.py docs/results/paper_budget/ablation_native/outcomes.jsonl.gz \
         --pair convnet-state convnet-nostate --pair lstmnet-state lstmnet-nostate \
         --draws convnet-state=convnet-state,convnet-state-s1,convnet-state-s2 \
                 convnet-nostate=convnet-nostate,convnet-nostate-s1,convnet-nostate-s2 \
         --out docs/results/paper_budget/ablation_native/state_effect.png
+    python scripts/paired_figure.py docs/results/laptop/results.json --out docs/results/laptop/paired_findings.png
 """
 
 from __future__ import annotations
 
 import argparse
+import json
 import sys
 from pathlib import Path
 
 from vitfly.errors import VitflyError
 from vitfly.eval.paired import HIGHER_IS_BETTER, PairedDifference, paired_difference
-from vitfly.eval.paired_findings import METRIC_WORDS
-from vitfly.eval.paper_figures import draw_paired_differences
+from vitfly.eval.paired_findings import METRIC_WORDS, PairedFinding
+from vitfly.eval.paper_figures import draw_paired_differences, paired_findings_figure
 from vitfly.eval.plots import _save
 from vitfly.eval.records import merge_records, read_records, report_files
 
@@ -64,12 +69,22 @@ def differences(records, pairs: list[list[str]], envs: list[str], metrics: list[
     return groups
 
 
+def study_findings(path: Path) -> list[PairedFinding]:
+    """The paired findings a study's results.json keeps."""
+    try:
+        kept = json.loads(path.read_text())["paired_findings"]
+    except (OSError, ValueError, KeyError, TypeError) as err:
+        why = f"{type(err).__name__}: {err}"
+        raise VitflyError(f"{path}: not a study's results.json with paired_findings ({why})") from None
+    return [PairedFinding.from_dict(f, f"{path}: paired_findings[{i}]") for i, f in enumerate(kept)]
+
+
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
                                 formatter_class=argparse.ArgumentDefaultsHelpFormatter)
     p.add_argument("records", nargs="+", help="trials*.jsonl, outcomes.jsonl.gz or sweep folders")
-    p.add_argument("--pair", nargs=2, action="append", required=True, metavar=("A", "B"),
-                   help="draw A - B (repeat for more pairs)")
+    p.add_argument("--pair", nargs=2, action="append", default=[], metavar=("A", "B"),
+                   help="draw A - B (repeat for more pairs); none for a results.json")
     p.add_argument("--draws", nargs="+", default=[], metavar="RUN=LABEL,...",
                    help="a run's training draws: compared by their mean (vitfly.eval.paired)")
     p.add_argument("--envs", nargs="+", default=["spheres", "trees"])
@@ -77,6 +92,16 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--title", default="")
     p.add_argument("--out", required=True, help="the figure (.png)")
     args = p.parse_args(argv)
+    if [Path(r).name for r in args.records] == ["results.json"]:
+        try:
+            written = paired_findings_figure(study_findings(Path(args.records[0])), Path(args.out), args.title)
+        except VitflyError as err:
+            print(f"paired_figure: {err}", file=sys.stderr)
+            return 1
+        print(f"wrote {written}" if written else f"{args.records[0]}: no paired finding was compared; nothing drawn")
+        return 0
+    if not args.pair:
+        p.error("--pair A B is required (but for a study's results.json)")
     try:
         records = read(args.records)
         groups = differences(records, args.pair, args.envs, args.metrics, parse_draws(args.draws))

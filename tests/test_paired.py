@@ -257,3 +257,30 @@ def test_paired_figure_script_draws_a_published_outcomes_file(tmp_path, capsys, 
     assert out.stat().st_size > 10_000
     assert script.main([str(tmp_path), "--pair", "a", "c", "--out", str(tmp_path / "no.png")]) == 1
     assert "no shared trials of c (flown: a, b)" in capsys.readouterr().err and not (tmp_path / "no.png").exists()
+
+
+def test_a_study_results_json_gives_back_its_paired_findings(tmp_path, capsys, monkeypatch):
+    import importlib
+    import json
+    from pathlib import Path
+
+    from vitfly.eval.paired import PairedDifference
+    from vitfly.eval.paired_findings import PairedFinding
+
+    spheres = (flights("vit_lstm", lambda k: 1) + flights("convnet", lambda k: 2) + flights("unet_lstm", lambda k: 0))
+    findings = paired_findings(spheres, None, None, None)
+    kept = json.loads(json.dumps({"paired_findings": [f.to_dict() for f in findings]}))  # as results.json keeps them
+    back = [PairedFinding.from_dict(f) for f in kept["paired_findings"]]
+    assert back == findings  # numbers, speeds (a tuple again) and verdicts
+    with pytest.raises(VitflyError, match="results.json: comparison 0: not a paired difference"):
+        PairedDifference.from_dict({"metric": "success"}, "results.json: comparison 0")
+
+    monkeypatch.syspath_prepend(str(Path(__file__).resolve().parents[1]))
+    script = importlib.import_module("scripts.paired_figure")
+    (tmp_path / "results.json").write_text(json.dumps(kept))
+    assert script.main([str(tmp_path / "results.json"), "--out", str(tmp_path / "paired.png")]) == 0
+    assert (tmp_path / "paired.png").stat().st_size > 10_000
+    (tmp_path / "bad").mkdir()
+    (tmp_path / "bad" / "results.json").write_text("{}")
+    assert script.main([str(tmp_path / "bad" / "results.json"), "--out", str(tmp_path / "bad.png")]) == 1
+    assert "not a study's results.json with paired_findings (KeyError" in capsys.readouterr().err

@@ -44,7 +44,7 @@ import math
 import warnings
 from collections import defaultdict
 from collections.abc import Iterable, Mapping, Sequence
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, fields
 
 import numpy as np
 from scipy.stats import binomtest, bootstrap
@@ -122,6 +122,15 @@ class PairedDifference:
 
     def to_dict(self) -> dict:
         return {**asdict(self), "verdict": self.verdict}
+
+    @classmethod
+    def from_dict(cls, d: Mapping, where: str = "paired difference") -> PairedDifference:
+        """The inverse of ``to_dict`` (``verdict`` is recomputed), e.g. from a study's results.json."""
+        names = [f.name for f in fields(cls)]
+        try:
+            return cls(**{**{k: d[k] for k in names if k in d}, "speeds": tuple(d["speeds"])})
+        except (KeyError, TypeError) as err:
+            raise VitflyError(f"{where}: not a paired difference ({type(err).__name__}: {err})") from None
 
 
 def metric_value(rec: TrialRecord, metric: str) -> float:

@@ -27,6 +27,7 @@ from __future__ import annotations
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 
+from vitfly.errors import VitflyError
 from vitfly.eval.findings import LEARNED, NOSTATE_SUFFIX, VIT_MODELS, label
 from vitfly.eval.paired import PairedDifference, claims_verdict, paired_difference
 from vitfly.eval.records import TrialRecord
@@ -53,6 +54,16 @@ class PairedFinding:
     def to_dict(self) -> dict:
         return {"key": self.key, "claim": self.claim, "metric": self.metric, "rule": self.rule,
                 "verdict": self.verdict, "why": self.why, "comparisons": [c.to_dict() for c in self.comparisons]}
+
+    @classmethod
+    def from_dict(cls, d: Mapping, where: str = "paired finding") -> PairedFinding:
+        """The inverse of ``to_dict``: a finding as a study's results.json keeps it (``paired_findings``)."""
+        try:
+            comparisons = [PairedDifference.from_dict(c, f"{where}, comparison {i}")
+                           for i, c in enumerate(d["comparisons"])]
+            return cls(d["key"], d["claim"], d["metric"], d["rule"], d["verdict"], comparisons, d.get("why", ""))
+        except (KeyError, TypeError) as err:
+            raise VitflyError(f"{where}: not a paired finding ({type(err).__name__}: {err})") from None
 
 
 def _speeds_of(records: Sequence[TrialRecord], policy: str) -> list[float]:
