@@ -241,7 +241,7 @@ def test_a_published_outcomes_file_alone_gives_the_same_reports(tmp_path):
     import shutil
 
     from vitfly.eval.config import SweepConfig
-    from vitfly.eval.evaluation import run_evaluation, write_outputs
+    from vitfly.eval.evaluation import merge_into, run_evaluation, write_outputs
 
     flown, published = tmp_path / "flown", tmp_path / "published"
     flown.mkdir(), published.mkdir()
@@ -259,7 +259,9 @@ def test_a_published_outcomes_file_alone_gives_the_same_reports(tmp_path):
     # flying into it would drop the published trials from its outcomes file: refused before any trial
     with pytest.raises(VitflyError, match="published outcomes.jsonl.gz and no trials"):
         run_evaluation(SweepConfig(policy="straight", env=["spheres"], speeds=[3.0], trials=1, out=str(published)))
-    assert not list(published.glob("trials*.jsonl"))
+    with pytest.raises(VitflyError, match="--merge .*published: holds only outcomes.jsonl.gz"):
+        merge_into(tmp_path / "merged", [flown, published])
+    assert not list(published.glob("trials*.jsonl")) and not (tmp_path / "merged").exists()
     with pytest.raises(VitflyError, match="no finished trials"):
         write_outputs(tmp_path / "empty")
 

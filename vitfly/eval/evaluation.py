@@ -135,6 +135,9 @@ def merge_into(out_dir: str | Path, sources: Sequence[str | Path]) -> int:
     for src in sources:
         if not Path(src).is_dir():
             raise VitflyError(f"--merge {src}: not a directory of trials*.jsonl")
+        if records.report_files(src) == [Path(src) / records.OUTCOMES_FILE]:
+            raise VitflyError(f"--merge {src}: holds only {records.OUTCOMES_FILE} (records without their paths); "
+                              "merge sweep directories, or read it with vitfly.eval.records.read_records")
         for rec in records.read_sweep(src):
             if rec.key not in keys:
                 new.append(rec)
