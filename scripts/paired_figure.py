@@ -24,8 +24,7 @@ from pathlib import Path
 from vitfly.errors import VitflyError
 from vitfly.eval.paired import HIGHER_IS_BETTER, PairedDifference, paired_difference
 from vitfly.eval.paired_findings import METRIC_WORDS, PairedFinding
-from vitfly.eval.paper_figures import draw_paired_differences, paired_findings_figure
-from vitfly.eval.plots import _save
+from vitfly.eval.paper_figures import paired_differences_figure, paired_findings_figure
 from vitfly.eval.records import merge_records, read_records, report_files
 
 
@@ -92,17 +91,14 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--title", default="")
     p.add_argument("--out", required=True, help="the figure (.png)")
     args = p.parse_args(argv)
-    if [Path(r).name for r in args.records] == ["results.json"]:
-        try:
-            written = paired_findings_figure(study_findings(Path(args.records[0])), Path(args.out), args.title)
-        except VitflyError as err:
-            print(f"paired_figure: {err}", file=sys.stderr)
-            return 1
-        print(f"wrote {written}" if written else f"{args.records[0]}: no paired finding was compared; nothing drawn")
-        return 0
-    if not args.pair:
+    study = [Path(r).name for r in args.records] == ["results.json"]
+    if not (study or args.pair):
         p.error("--pair A B is required (but for a study's results.json)")
     try:
+        if study:
+            written = paired_findings_figure(study_findings(Path(args.records[0])), args.out, args.title)
+            print(f"wrote {written}" if written else f"{args.records[0]}: no finding was compared; nothing drawn")
+            return 0
         records = read(args.records)
         groups = differences(records, args.pair, args.envs, args.metrics, parse_draws(args.draws))
         flown = {r.policy for r in records}
@@ -118,7 +114,7 @@ def main(argv: list[str] | None = None) -> int:
         for d in diffs:
             print(f"{d.metric:<10} {d.a} - {d.b}, {d.env}, {'/'.join(f'{s:g}' for s in d.speeds)} m/s: {d.text()}")
     title = args.title or "paired differences A - B with their 95 % intervals"
-    print(f"wrote {_save(draw_paired_differences(groups, title), Path(args.out))}")
+    print(f"wrote {paired_differences_figure(groups, args.out, title)}")
     return 0
 
 

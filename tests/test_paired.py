@@ -212,7 +212,7 @@ def test_paired_findings_figure_draws_each_claim_where_its_interval_lies(tmp_pat
     colour = {k: mcolors.to_rgba(c) for k, c in DECIDED_COLOURS.items()}
     dots = [line for line in ax_collisions.lines if line.get_marker() == "o"]
     drawn = sorted((float(line.get_xdata()[0]), mcolors.to_rgba(line.get_color())) for line in dots)
-    assert drawn == [(-1.0, colour["for"]), (0.0, colour["cannot tell"]), (1.0, colour["against"])]
+    assert drawn == [(-1.0, colour["for"]), (0.0, colour["undecided"]), (1.0, colour["against"])]
     bars = [seg for coll in ax_collisions.collections for seg in coll.get_segments()]
     assert sorted((s[0][0], s[1][0]) for s in bars) == [(-1.0, -1.0), (0.0, 0.0), (1.0, 1.0)]
     (dot,) = [line for line in ax_success.lines if line.get_marker() == "o"]

@@ -68,8 +68,7 @@ def write_outputs(out_dir: str | Path, with_plots: bool = True, title: str | Non
     ``reports.json`` is written last, so reports cut short by a kill are written again.
     """
     out_dir = Path(out_dir)
-    sources = records.report_files(out_dir)
-    recs = records.merge_records(records.read_records(p) for p in sources)
+    recs = records.merge_records(records.read_records(p) for p in records.report_files(out_dir))
     if not recs:
         raise VitflyError(f"{out_dir}: no finished trials (trials*.jsonl or {records.OUTCOMES_FILE}) to report on")
     records.check_consistent(recs, str(out_dir))
@@ -82,7 +81,7 @@ def write_outputs(out_dir: str | Path, with_plots: bool = True, title: str | Non
             return rows, files
     files = dict(write_reports(out_dir, rows, title))
     files["outcomes"] = out_dir / records.OUTCOMES_FILE
-    if sources != [files["outcomes"]]:  # else it is what these reports were read from
+    if not records.only_outcomes(out_dir):  # else it is what these reports were read from
         records.write_outcomes(files["outcomes"], recs)
     if len({r.policy for r in recs}) > 1:  # policies flown on the same scenes: their paired differences
         files["paired"] = out_dir / "paired.csv"
@@ -135,7 +134,7 @@ def merge_into(out_dir: str | Path, sources: Sequence[str | Path]) -> int:
     for src in sources:
         if not Path(src).is_dir():
             raise VitflyError(f"--merge {src}: not a directory of trials*.jsonl")
-        if records.report_files(src) == [Path(src) / records.OUTCOMES_FILE]:
+        if records.only_outcomes(src):
             raise VitflyError(f"--merge {src}: holds only {records.OUTCOMES_FILE} (records without their paths); "
                               "merge sweep directories, or read it with vitfly.eval.records.read_records")
         for rec in records.read_sweep(src):
@@ -150,7 +149,7 @@ def merge_into(out_dir: str | Path, sources: Sequence[str | Path]) -> int:
 
 def run_evaluation(cfg: SweepConfig, progress: bool = True) -> EvaluationResult:
     """Fly the sweep (resuming), then write every report of ``cfg.out``."""
-    if records.report_files(cfg.out) == [Path(cfg.out) / records.OUTCOMES_FILE]:
+    if records.only_outcomes(cfg.out):
         # its reports would then cover the new trials alone, and its outcomes file lose the published ones
         raise VitflyError(f"{cfg.out}: holds a published {records.OUTCOMES_FILE} and no trials*.jsonl; fly into "
                           "another --out, or rewrite its reports with --report-only")

@@ -105,6 +105,12 @@ class PairedDifference:
         return self.a if a_higher == HIGHER_IS_BETTER[self.metric] else self.b
 
     @property
+    def side(self) -> str:
+        """What this says of the claim "``a`` better than ``b``": "for", "against" or "undecided" (``claim_side``'s
+        words; for a lower-is-better metric a difference below 0 is for)."""
+        return {self.a: "for", self.b: "against"}.get(self.better, "undecided")
+
+    @property
     def verdict(self) -> str:
         return f"{self.better} better" if self.better else "cannot tell"
 

@@ -77,8 +77,7 @@ def _learned(records: Sequence[TrialRecord]) -> list[str]:
 
 def _decide(diffs: list[PairedDifference]) -> tuple[str, str]:
     """(verdict, why) of claims that each diff's ``a`` is the better, by the module's rule."""
-    return claims_verdict(["for" if d.better == d.a else "against" if d.better == d.b else "undecided"
-                           for d in diffs])
+    return claims_verdict([d.side for d in diffs])
 
 
 def _over(draws: Draws) -> str:
@@ -243,7 +242,7 @@ def paired_findings_markdown(findings: Sequence[PairedFinding]) -> str:
         for i, d in enumerate(f.comparisons):
             head = f.claim if i == 0 else ""
             verdict = f"**{f.verdict}** ({f.why})" if i == 0 else ""
-            decided = {None: "cannot tell", d.a: "for", d.b: "against"}[d.better]
+            decided = "cannot tell" if d.side == "undecided" else d.side
             lines.append(f"| {head} | {_policy(d.a)} vs {_policy(d.b)}, {d.env} | {METRIC_WORDS[d.metric]} | "
                          f"{d.text()} | {decided} | {verdict} |")
     counts = ", ".join(f"{sum(f.verdict == v for f in findings)} {v}" for v in PAIRED_VERDICTS)

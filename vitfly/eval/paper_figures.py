@@ -33,7 +33,7 @@ from vitfly.eval.repeats import mean_path
 from vitfly.sim.visualize import draw_scene, format_views
 
 BAND_SIGMA = 0.1  # the paper's band: mean +- 0.1 sigma
-DECIDED_COLOURS = {"for": "tab:green", "against": "tab:red", "cannot tell": "0.55"}  # of a claim "A better than B"
+DECIDED_COLOURS = {"for": "tab:green", "against": "tab:red", "undecided": "0.55"}  # PairedDifference.side
 X_STEP_M = 0.25  # resampling grid of the mean paths
 
 
@@ -183,18 +183,19 @@ def paired_findings_figure(findings: Sequence[PairedFinding], path: str | Path, 
     groups = finding_panels(findings)
     if not groups:
         return None
-    return _save(draw_paired_differences(groups, title or "the paper's findings, decided on pairs"), Path(path))
+    return paired_differences_figure(groups, path, title or "the paper's findings, decided on pairs")
+
+
+def paired_differences_figure(groups: Sequence[tuple[str, Sequence[PairedDifference]]], path: str | Path,
+                              title: str = "") -> Path:
+    """``draw_paired_differences`` saved to ``path``."""
+    return _save(draw_paired_differences(groups, title), Path(path))
 
 
 def finding_panels(findings: Sequence[PairedFinding]) -> list[tuple[str, list[PairedDifference]]]:
     """(claim and verdict, its comparisons on one metric) per finding and metric; findings without any: none."""
     return [(f"{f.claim}: {f.verdict}", [d for d in f.comparisons if d.metric == metric])
             for f in findings for metric in dict.fromkeys(d.metric for d in f.comparisons)]
-
-
-def decision(d: PairedDifference) -> str:
-    """What ``d`` says of the claim "``d.a`` better than ``d.b``": for, against or cannot tell."""
-    return {d.a: "for", d.b: "against"}.get(d.better, "cannot tell")
 
 
 def draw_paired_differences(groups: Sequence[tuple[str, Sequence[PairedDifference]]], title: str = "") -> Figure:
@@ -212,7 +213,7 @@ def draw_paired_differences(groups: Sequence[tuple[str, Sequence[PairedDifferenc
         scale = 100.0 if metric in OUTCOMES else 1.0
         rows = np.arange(len(diffs))[::-1]  # the first difference on top
         for y, d in zip(rows, diffs, strict=True):
-            colour = DECIDED_COLOURS[decision(d)]
+            colour = DECIDED_COLOURS[d.side]
             ax.hlines(y, scale * d.low, scale * d.high, color=colour, lw=2.5)
             ax.plot(scale * d.diff, y, "o", color=colour, ms=5)
         ax.axvline(0.0, color="0.2", lw=0.8)
@@ -223,7 +224,7 @@ def draw_paired_differences(groups: Sequence[tuple[str, Sequence[PairedDifferenc
         ax.set_title(name, loc="left", fontsize=9)
         ax.grid(axis="x", alpha=0.3)
     words = {"for": "A better (the interval excludes 0)", "against": "B better (the interval excludes 0)",
-             "cannot tell": "cannot tell (the interval holds 0)"}
+             "undecided": "cannot tell (the interval holds 0)"}
     handles = [Line2D([], [], color=c, lw=2.5, marker="o", label=words[k]) for k, c in DECIDED_COLOURS.items()]
     fig.legend(handles=handles, loc="outside lower center", ncols=3, fontsize=8)
     fig.suptitle(title or "paired differences A - B with their 95 % intervals")

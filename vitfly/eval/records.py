@@ -326,6 +326,11 @@ def report_files(out_dir: str | Path) -> list[Path]:
     return trial_files or ([outcomes] if outcomes.exists() else [])
 
 
+def only_outcomes(out_dir: str | Path) -> bool:
+    """True for a folder whose reports come from its ``OUTCOMES_FILE`` alone (a published table: no trials)."""
+    return report_files(out_dir) == [Path(out_dir) / OUTCOMES_FILE]
+
+
 def read_sweep(out_dir: str | Path) -> list[TrialRecord]:
     """Every record in ``out_dir`` (``trials*.jsonl``), merged by key."""
     return merge_records(read_records(p) for p in iter_trial_files(out_dir))
