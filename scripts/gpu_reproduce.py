@@ -11,17 +11,17 @@ There (the device machine, 16 cores and one GPU; at most 10 minutes a command; t
 1. the preset's dataset, collected there with many workers (the collector is deterministic: the file is
    byte-identical to one collected anywhere else with the same settings; ``--expect-data-hash`` refuses to
    train on anything else, and so does every resumed run whose ``unfinished.json`` names another hash);
-2. every run as its own process, all at once (small TBPTT batches leave a GPU mostly idle), through the same
-   code as ``vitfly reproduce``'s train stage (recipe, preset overrides, done.json); a run of
+2. every run as its own process, all at once (small TBPTT batches leave a GPU mostly idle; where the machine has
+   NVIDIA's MPS daemon, the runs share the card through a private one, ``scripts/gpu_mps.py``, unless ``--no-mps``),
+   through the same code as ``vitfly reproduce``'s train stage (recipe, preset overrides, done.json); a run of
    ``--resume-from`` (a run folder that ``unpack`` left unfinished, or the lean copy ``carry`` kept of it in
-   ``carry/<preset>/``, which travels with the working tree) goes on from its last epoch; a run that finishes
-   with no epoch better than a best one it was carried without says so in its done.json. Every epoch ends in
-   ``last.ckpt``; a run does not start an epoch that would end after the deadline (``--stop-after-epochs``
-   stops it after that many), and one still running then is killed and goes on from its last epoch next time.
-   A run with a done.json is never trained again. ``--go-on`` makes a follow-on call on a machine still warm
-   from the last one (the device time a lease leaves after a 10-minute command): each run goes on from its
-   folder there (full state; the first call wrote its ``unfinished.json``) where that is further along than
-   the ``--resume-from`` state;
+   ``carry/<preset>/``, which travels with the working tree) goes on from its last epoch; a run that finishes with
+   no epoch better than a best one it was carried without says so in its done.json. Every epoch ends in
+   ``last.ckpt``; a run does not start an epoch that would end after the deadline (``--stop-after-epochs`` stops it
+   after that many), and one still running then is killed and goes on from its last epoch next time. A run with a
+   done.json is never trained again. ``--go-on`` makes a follow-on call on a machine still warm from the last one
+   (the device time a lease leaves after a 10-minute command): each run goes on from its folder there (full state;
+   the first call wrote its ``unfinished.json``) where that is further along than the ``--resume-from`` state;
 3. the runs packed for the trip back as ``runs.tar.NNN`` (``scripts/gpu_pack.py``; at most ``--return-mib``,
    finished runs first):
    a finished run as metrics, split, cost, done.json and its best checkpoint without optimiser state (network
@@ -30,8 +30,9 @@ There (the device machine, 16 cores and one GPU; at most 10 minutes a command; t
    state; the best checkpoint so far in fp16; ``unfinished.json``: epochs done, data hash, the slots so far);
    every checkpoint squeezed losslessly (``*.ckpt.bpz``, ``scripts/gpu_squeeze.py``: 0.74 of the bytes with
    bf16 moments, 0.82 with fp32), so three large runs' states come back where two did.
-   DIR/gpu_reproduce.json says what happened to each run, how busy they kept the card (``card_load``:
-   ``nvidia-smi`` every 5 s, ``scripts/gpu_load.py``) and holds the pieces' manifest; the command exits 0
+   DIR/gpu_reproduce.json says what happened to each run, whether they shared the card through MPS (``mps``),
+   how busy they kept it (``card_load``: ``nvidia-smi`` every 5 s, ``scripts/gpu_load.py``) and holds the
+   pieces' manifest; the command exits 0
    when every run came back (finished, or unfinished with at least one more epoch) or was finished before.
 
 Here (the machine that goes on with the preset):
@@ -69,6 +70,7 @@ ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
 from scripts.gpu_load import CardLoad  # noqa: E402
+from scripts.gpu_mps import SharedCard  # noqa: E402
 from scripts.gpu_preset import flies_best, load_cfg, local_data_hash, parse_label, run_dir  # noqa: E402
 
 SLOT_ENDED_RC = 3  # train-one's exit status when the slot ended before the run did
@@ -453,9 +455,12 @@ def train(args: argparse.Namespace) -> int:
     place_resumed(cfg, resumed)
     todo = runs_to_train(cfg, labels, report)
     deadline = start + args.deadline_s - args.reserve_s
-    with CardLoad(work / "card_load.csv") as load:  # how busy the runs kept the card, for the next plan
-        procs = start_runs(args, todo, resumed, time.time() + deadline - time.monotonic(), work)
-        ended = wait_runs(procs, deadline)
+    with SharedCard(len(todo), wanted=not args.no_mps) as card:
+        report["mps"] = card.info
+        log(f"mps: {card.info}")
+        with CardLoad(work / "card_load.csv") as load:  # how busy the runs kept the card, for the next plan
+            procs = start_runs(args, todo, resumed, time.time() + deadline - time.monotonic(), work)
+            ended = wait_runs(procs, deadline)
     report["card_load"] = load.summary()
     log(f"card load: { {k: v for k, v in report['card_load'].items() if k != 'utilization_samples'} }")
     return return_runs(cfg, args, todo, ended, resumed, data_hash, report, start)
@@ -692,6 +697,8 @@ def add_commands(sub) -> dict:
     t.add_argument("--collect-workers", type=int, default=14)
     t.add_argument("--threads", type=int, default=2, help="torch threads per run")
     t.add_argument("--stop-after-epochs", type=int, help="epochs each run trains in this slot at most")
+    t.add_argument("--no-mps", action="store_true",
+                   help="runs take turns on the card even where NVIDIA's MPS daemon could let them share it")
     for p in (t, sub.choices["status"], sub.choices["carry"]):  # status plans the slot train runs with them
         p.add_argument("--deadline-s", type=float, default=DEADLINE_S, help="the whole command, from its start")
         p.add_argument("--reserve-s", type=float, default=RESERVE_S, help="left after training for packing")

@@ -84,6 +84,7 @@ def test_runs_trained_elsewhere_come_back_as_done(tmp_path, data, capsys):
     assert report["runs"]["convnet-nostate"]["state"] == "finished"
     assert report["runs"]["convnet-nostate"]["packed"] and report["runs"]["convnet-nostate"]["epochs"] == [0, 1]
     assert report["data"]["dataset_hash"] == data_hash
+    assert report["mps"] == {"mps": False, "note": "one run: nothing to share the card with"}
 
     trained = run_dir / "train" / "convnet-nostate"
     original = load_network(trained / "checkpoints" / "best.ckpt")
