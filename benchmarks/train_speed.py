@@ -170,11 +170,24 @@ def measure_arm(
     more batches (``torch.profiler``, the device's time first), where a step's time goes."""
     import torch
 
+    clear_compile_counts()
+    one_batch, padded = arm_batch_fn(model, policy_kwargs, batch, steps, bucket, precision, device, threads)
+    median_s, warmup_s = time_batches(one_batch, warmup, iters)
+    table = profile_table(one_batch, torch.device(device)) if profile else None
+    return {"fps": batch * steps / median_s, "warmup_s": warmup_s, "padded": padded,
+            **({"profile": table} if table else {}), **compile_counts()}
+
+
+def arm_batch_fn(model: str, policy_kwargs: dict, batch: int, steps: int, bucket: int | None, precision: str,
+                 device: str, threads: int | None = None):
+    """(one training batch as the arm trains it, as a call; the padded batch's shape): ``measure_arm``'s set-up,
+    also run by benchmarks/card_sharing.py's processes."""
+    import torch
+
     if threads:
         torch.set_num_threads(threads)
     from vitfly.zoo.policy import create_policy
 
-    clear_compile_counts()
     torch.manual_seed(0)
     module = create_policy(model, **policy_kwargs).to(device)
     module.train()
@@ -187,13 +200,7 @@ def measure_arm(
     dev = torch.device(device)
     autocast = torch.autocast(dev.type, dtype=torch.bfloat16) if precision == "bf16" else contextlib.nullcontext()
     clip = policy_kwargs.get("gradient_clip_val")
-
-    one_batch = train_batch_fn(module, optimizer, data, autocast, dev, clip)
-
-    median_s, warmup_s = time_batches(one_batch, warmup, iters)
-    table = profile_table(one_batch, dev) if profile else None
-    return {"fps": batch * steps / median_s, "warmup_s": warmup_s, "padded": list(data["mask"].shape),
-            **({"profile": table} if table else {}), **compile_counts()}
+    return train_batch_fn(module, optimizer, data, autocast, dev, clip), list(data["mask"].shape)
 
 
 def clear_compile_counts() -> None:
