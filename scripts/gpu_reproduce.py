@@ -594,8 +594,9 @@ def run_states(cfg) -> list:
         elif epochs_done(d):
             rows.append(RunState(run, "started here",
                                  f"started here: {epochs_done(d)}/{n} epochs (vitfly reproduce resumes it)", d))
-        else:
-            rows.append(RunState(run, "not started", "not started"))
+        else:  # a folder without an epoch: a run in its first epoch here, or one stopped before its end
+            rows.append(RunState(run, "not started", "not started" + (" (its folder exists: no epoch ended yet)"
+                                                                      if d.is_dir() else "")))
     return rows
 
 

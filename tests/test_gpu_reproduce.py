@@ -180,9 +180,11 @@ def test_a_run_stopped_in_one_slot_resumes_in_the_next_exactly(tmp_path, data, t
     assert dirs == {os.path.realpath(run / "checkpoints")}  # pointed at its new home
 
     capsys.readouterr()
+    (home / "train" / "convnet-nostate").mkdir()  # a run in its first epoch here: a folder, no epoch yet
     assert gpu.main(["status", *common, "--run-dir", str(home)]) == 0
     listing = capsys.readouterr().out
-    assert "vit_lstm-state   unfinished: 1/2 epochs" in listing and "convnet-state    not started" in listing
+    assert "vit_lstm-state   unfinished: 1/2 epochs" in listing and "convnet-state    not started\n" in listing
+    assert "convnet-nostate  not started (its folder exists: no epoch ended yet)\n" in listing
     assert "about 1 more slot of" in listing
     # ViT+LSTM's lean state with fp32 moments and its best epoch in fp16 (the tiny preset flies the best epoch):
     # 3,563,663 x (12 x 0.85, last.* squeezed as planned + 2) + 196,608 bytes = 41.7 MiB, within what the working
