@@ -32,8 +32,8 @@ There (the device machine, 16 cores and one GPU; at most 10 minutes a command; t
    bf16 moments, 0.82 with fp32), so three large runs' states come back where two did.
    DIR/gpu_reproduce.json says what happened to each run, whether they shared the card through MPS (``mps``),
    how busy they kept it (``card_load``: ``nvidia-smi`` every 5 s, ``scripts/gpu_load.py``) and holds the
-   pieces' manifest; the command exits 0
-   when every run came back (finished, or unfinished with at least one more epoch) or was finished before.
+   pieces' manifest; the command exits 0 when every run came back (finished, or unfinished with at least one
+   more epoch) or was finished before.
 
 Here (the machine that goes on with the preset):
 
