@@ -294,3 +294,26 @@ def test_init_weights_starts_a_fit_from_the_shipped_weights(data_path, tmp_path,
     assert err == ["vitfly: error: pretrained:lstmnet: init_weights holds model 'lstmnet' (use_state=True), "
                    "not 'convnet' (use_state=True)"]  # fmt: skip
     assert not list((tmp_path / "bad").rglob("*.ckpt"))
+
+
+def test_train_policy_says_nothing_about_its_own_run_folder(data_path, tmp_path):
+    """The run folder holds vitfly's own files (data.json from the pipeline, split.json) before Lightning's
+    logger starts, and a resume finds checkpoints there: Lightning's 'exists and is not empty ... will be
+    deleted' warnings are wrong about such a folder (the earlier metrics are joined back), so they stay quiet,
+    and the resumed run's metrics.csv holds both epochs."""
+    import warnings
+
+    from vitfly.training import train_policy
+
+    out = tmp_path / "prog"
+    out.mkdir()
+    (out / "data.json").write_text('{"hash": "0"}')  # what vitfly pipeline records before training
+    kwargs = dict(batch_size=2, progress_bar=False)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        train_policy(data_path, "convnet", out, max_epochs=1, **kwargs)
+        train_policy(data_path, "convnet", out, max_epochs=2, **kwargs)  # resumes from last.ckpt
+    assert not [w for w in caught if "exists and is not empty" in str(w.message)]
+    with open(out / "metrics.csv") as f:
+        epochs = {row["epoch"] for row in csv.DictReader(f) if row.get("val/loss")}
+    assert epochs == {"0", "1"}

@@ -7,6 +7,7 @@ shared pieces (checkpoint callback, progress bar, wandb default) are used by ``v
 from __future__ import annotations
 
 import os
+import warnings
 from pathlib import Path
 from typing import Any
 
@@ -18,6 +19,9 @@ MONITOR = "val/loss"
 BEST_NAME = "best"  # checkpoints/best.ckpt: the lowest validation loss so far
 CHECKPOINT_DIR = "checkpoints"
 SELECT = ("best", "last")  # which epoch a training hands on to be flown
+# Lightning's warnings about a run folder that already holds files: train_policy's folders do by design
+_RUN_FOLDER_WARNINGS = (r"Experiment logs directory .* exists and is not empty",
+                        r"Checkpoint directory .* exists and is not empty")
 
 
 def checkpoint_defaults() -> dict[str, Any]:
@@ -134,7 +138,12 @@ def train_policy(
     elif init_weights is not None:
         load_initial_weights(policy, init_weights, model, use_state)
     try:
-        trainer.fit(policy, datamodule=data, ckpt_path=str(last) if last.exists() else None, weights_only=True)
+        with warnings.catch_warnings():
+            # the folder is the run's own: data.json and split.json sit beside the logs by design, and a
+            # resume's earlier metrics wait aside (joined below), so Lightning's "will be deleted" is not so
+            for message in _RUN_FOLDER_WARNINGS:
+                warnings.filterwarnings("ignore", message=message, category=UserWarning)
+            trainer.fit(policy, datamodule=data, ckpt_path=str(last) if last.exists() else None, weights_only=True)
     finally:
         join_metrics(out_dir)
     best = checkpoint.best_model_path if checkpoint else ""
