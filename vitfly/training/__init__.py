@@ -5,6 +5,7 @@
 - :mod:`vitfly.training.cli`: ``vitfly fit | validate | test | predict`` (LightningCLI).
 - :mod:`vitfly.training.checkpoints`: ``last.ckpt`` at the end of every epoch, and the random generators' state
   for an exact resume.
+- :mod:`vitfly.training.run_lock`: one training process per run folder (a second one is told which process has it).
 
 Training composes :mod:`vitfly.zoo` (the networks and their ``PolicyModule``) and :mod:`vitfly.datamodules`;
 neither of them imports it. Importing this package does not import Lightning.

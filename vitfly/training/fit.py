@@ -76,7 +76,8 @@ def train_policy(
     epoch of lowest validation loss (last if no validation), with ``select="last"`` the final epoch (the
     original ViTfly code flies the model its last epoch saved; no best.ckpt is kept then).
 
-    Writes ``out_dir/checkpoints/{best,last}.ckpt``, ``out_dir/metrics.csv`` and ``out_dir/split.json``.
+    Writes ``out_dir/checkpoints/{best,last}.ckpt``, ``out_dir/metrics.csv`` and ``out_dir/split.json``; while it
+    trains, another process calling it on the same ``out_dir`` gets ``vitfly.training.run_lock.RunBusy``.
     An interrupted run resumes from ``out_dir/checkpoints/last.ckpt`` when called again with the same
     arguments, as the uninterrupted run would have gone on (the random generators' state travels in the
     checkpoint: ``vitfly.training.checkpoints.RngState``); a finished run returns at once. The split is frozen
@@ -97,62 +98,64 @@ def train_policy(
     from vitfly.training.checkpoints import LastCheckpoint, RngState
     from vitfly.training.epoch_times import EpochTimes
     from vitfly.training.precision import trainer_precision
+    from vitfly.training.run_lock import run_lock
     from vitfly.zoo.policy import create_policy
 
     if select not in SELECT:
         raise VitflyError(f"select: expected one of {', '.join(SELECT)}, got {select!r}")
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
-    L.seed_everything(seed, verbose=False)
-    policy = create_policy(model, use_state=use_state, **(policy_kwargs or {}))
-    data = TrajectoryDataModule(
-        str(data_path),
-        batch_size=batch_size,
-        val_fraction=val_fraction,
-        split_seed=seed,
-        use_state=use_state,
-        **(data_kwargs or {}),
-    )
-    ckpt_dir = out_dir / CHECKPOINT_DIR
-    checkpoint = ModelCheckpoint(dirpath=ckpt_dir, **checkpoint_defaults()) if select == "best" else None
-    # best first: Trainer.checkpoint_callback (ckpt_path="best") is the first ModelCheckpoint
-    bar = [RichProgressBar()] if progress_bar else []
-    trainer_kwargs, notes = trainer_precision(trainer_kwargs or {}, f"train {model}")  # bf16 only where it pays
-    # RngState: a resumed run draws the dropout masks the uninterrupted one would have drawn
-    callbacks = [*([checkpoint] if checkpoint else []), LastCheckpoint(ckpt_dir), RngState(), EpochTimes(), *bar,
-                 *(callbacks or []), *notes]
-    trainer = L.Trainer(
-        max_epochs=max_epochs,
-        default_root_dir=out_dir,
-        logger=CSVLogger(save_dir=out_dir, name="", version=""),
-        callbacks=callbacks,
-        enable_progress_bar=progress_bar,
-        # the datamodule's batch sampler shards itself across DDP ranks (trainer_kwargs strategy="ddp", devices=N)
-        **{"enable_model_summary": False, "use_distributed_sampler": False, **trainer_kwargs},
-    )
-    last = ckpt_dir / "last.ckpt"
-    if last.exists():
-        _check_same_run(last, model, use_state)
-        # CSVLogger empties metrics.csv on a resume: the curve so far waits beside it
-        set_metrics_aside(out_dir, _epochs_done(last))
-    elif init_weights is not None:
-        load_initial_weights(policy, init_weights, model, use_state)
-    try:
-        with warnings.catch_warnings():
-            # the folder is the run's own: data.json and split.json sit beside the logs by design, and a
-            # resume's earlier metrics wait aside (joined below), so Lightning's "will be deleted" is not so
-            for message in _RUN_FOLDER_WARNINGS:
-                warnings.filterwarnings("ignore", message=message, category=UserWarning)
-            trainer.fit(policy, datamodule=data, ckpt_path=str(last) if last.exists() else None, weights_only=True)
-    finally:
-        join_metrics(out_dir)
-    best = checkpoint.best_model_path if checkpoint else ""
-    path = Path(best) if best else last
-    if best and not path.exists() and last.exists():
-        raise BestCheckpointMissing(path)
-    if not path.exists():
-        raise VitflyError(f"{out_dir}: training ended without writing a checkpoint (max_epochs={max_epochs})")
-    return path
+    with run_lock(out_dir):  # one process per run folder: a second one is told who trains it
+        L.seed_everything(seed, verbose=False)
+        policy = create_policy(model, use_state=use_state, **(policy_kwargs or {}))
+        data = TrajectoryDataModule(
+            str(data_path),
+            batch_size=batch_size,
+            val_fraction=val_fraction,
+            split_seed=seed,
+            use_state=use_state,
+            **(data_kwargs or {}),
+        )
+        ckpt_dir = out_dir / CHECKPOINT_DIR
+        checkpoint = ModelCheckpoint(dirpath=ckpt_dir, **checkpoint_defaults()) if select == "best" else None
+        # best first: Trainer.checkpoint_callback (ckpt_path="best") is the first ModelCheckpoint
+        bar = [RichProgressBar()] if progress_bar else []
+        trainer_kwargs, notes = trainer_precision(trainer_kwargs or {}, f"train {model}")  # bf16 only where it pays
+        # RngState: a resumed run draws the dropout masks the uninterrupted one would have drawn
+        callbacks = [*([checkpoint] if checkpoint else []), LastCheckpoint(ckpt_dir), RngState(), EpochTimes(), *bar,
+                     *(callbacks or []), *notes]
+        trainer = L.Trainer(
+            max_epochs=max_epochs,
+            default_root_dir=out_dir,
+            logger=CSVLogger(save_dir=out_dir, name="", version=""),
+            callbacks=callbacks,
+            enable_progress_bar=progress_bar,
+            # the datamodule's batch sampler shards itself across DDP ranks (trainer_kwargs strategy="ddp", devices=N)
+            **{"enable_model_summary": False, "use_distributed_sampler": False, **trainer_kwargs},
+        )
+        last = ckpt_dir / "last.ckpt"
+        if last.exists():
+            _check_same_run(last, model, use_state)
+            # CSVLogger empties metrics.csv on a resume: the curve so far waits beside it
+            set_metrics_aside(out_dir, _epochs_done(last))
+        elif init_weights is not None:
+            load_initial_weights(policy, init_weights, model, use_state)
+        try:
+            with warnings.catch_warnings():
+                # the folder is the run's own: data.json and split.json sit beside the logs by design, and a
+                # resume's earlier metrics wait aside (joined below), so Lightning's "will be deleted" is not so
+                for message in _RUN_FOLDER_WARNINGS:
+                    warnings.filterwarnings("ignore", message=message, category=UserWarning)
+                trainer.fit(policy, datamodule=data, ckpt_path=str(last) if last.exists() else None, weights_only=True)
+        finally:
+            join_metrics(out_dir)
+        best = checkpoint.best_model_path if checkpoint else ""
+        path = Path(best) if best else last
+        if best and not path.exists() and last.exists():
+            raise BestCheckpointMissing(path)
+        if not path.exists():
+            raise VitflyError(f"{out_dir}: training ended without writing a checkpoint (max_epochs={max_epochs})")
+        return path
 
 
 class BestCheckpointMissing(VitflyError):

@@ -34,6 +34,7 @@ from pathlib import Path
 
 from vitfly.atomic import write_text
 from vitfly.errors import VitflyError
+from vitfly.training.run_lock import RunBusy
 from vitfly.workflows.pipeline import (
     EvalStage,
     TrainStage,
@@ -94,7 +95,7 @@ def _add_cost(train_dir: Path, seconds: float, fit_before_s: float) -> dict:
 def stage_train_all(cfg: ReproduceConfig, progress: bool = True) -> dict[str, Path]:
     """Train (or resume, or skip) every run, then the other draws; returns label -> checkpoint. Publishes the
     study's own state models if asked."""
-    checkpoints = {}
+    checkpoints, busy = {}, []
     for run in runs(cfg):
         model, use_state = run.model, run.use_state
         recipe = train_stage(cfg, model, use_state, seed=run.seed)
@@ -106,14 +107,30 @@ def stage_train_all(cfg: ReproduceConfig, progress: bool = True) -> dict[str, Pa
             stage, callbacks = train_callbacks(recipe, cfg, "reproduce config")
             fit_before_s = _fit_seconds(train_dir)
             t0 = time.perf_counter()
-            ckpt = stage_train(stage, cfg.data, train_dir, cfg.threads, progress, callbacks=callbacks)
+            try:
+                ckpt = stage_train(stage, cfg.data, train_dir, cfg.threads, progress, callbacks=callbacks)
+            except RunBusy as e:  # a second `vitfly reproduce` on the study trains the runs the first is not on
+                print(f"[train] {train_dir}: skipped here, {e.who} trains it")
+                busy.append(train_dir.name)
+                continue
             cost = _add_cost(train_dir, time.perf_counter() - t0, fit_before_s)
             killed = f" ({cost['killed_s'] / 60:.1f} of them in killed sessions)" if cost["killed_s"] else ""
             print(f"[train] {run.label}: {cost['wall_s'] / 60:.1f} min of training so far{killed}")
         checkpoints[run.label] = ckpt
         if use_state and run.seed is None and cfg.train.publish_weights and model in cfg.train.publish_models:
             publish(cfg, model, ckpt, stage)
+    if busy:
+        raise RunsBusy(busy)
     return checkpoints
+
+
+class RunsBusy(VitflyError):
+    """The train stage trained what it could; other processes still train the runs in the folders ``names``."""
+
+    def __init__(self, names: list[str]):
+        super().__init__(f"train: {', '.join(names)} still training in another process; run this command again "
+                         "when it ends (the runs finished here are kept)")
+        self.names = names
 
 
 def trained_checkpoints(cfg: ReproduceConfig) -> dict[str, Path | str]:
