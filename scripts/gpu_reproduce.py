@@ -576,12 +576,16 @@ def run_states(cfg) -> list:
     from scripts.gpu_carry import caught_up
     from scripts.gpu_plan import RunState
     from scripts.gpu_slots import MARKER, epochs_done, tree_bytes
+    from vitfly.training.run_lock import training_now
     from vitfly.workflows.reproduce_config import runs, train_stage
 
     rows = []
     for run in runs(cfg):
         d = cfg.train_dir(*run)
         n = train_stage(cfg, run.model, run.use_state, seed=run.seed).max_epochs
+        holder = training_now(d)  # a process here holds the run's lock (vitfly.training.run_lock)
+        now = "" if holder is None else ", training here now" + (
+            f" (pid {holder['pid']}, since {holder['since']})" if "pid" in holder else "")
         if (d / "done.json").exists():
             on = json.loads((d / "done.json").read_text()).get("trained_on")
             rows.append(RunState(run, "done", "done" + (f" ({on['epochs']} epochs on {on['device']})" if on else ""),
@@ -589,12 +593,14 @@ def run_states(cfg) -> list:
         elif (d / MARKER).exists():
             # a restored run that vitfly reproduce took further here: those epochs as one more CPU slot
             marker = caught_up({**json.loads((d / MARKER).read_text()), "max_epochs": n}, d)
-            rows.append(RunState(run, "unfinished", f"unfinished: {progress(marker)}{slots_left(marker)}", d,
+            rows.append(RunState(run, "unfinished", f"unfinished: {progress(marker)}{slots_left(marker)}{now}", d,
                                  tree_bytes(d), marker))
         elif epochs_done(d):
             rows.append(RunState(run, "started here",
-                                 f"started here: {epochs_done(d)}/{n} epochs (vitfly reproduce resumes it)", d))
-        else:  # a folder without an epoch: a run in its first epoch here, or one stopped before its end
+                                 f"started here: {epochs_done(d)}/{n} epochs (vitfly reproduce resumes it){now}", d))
+        elif holder is not None:  # in its first epoch here: no slot may start it too
+            rows.append(RunState(run, "started here", f"started here: no epoch ended yet{now}", d))
+        else:  # a folder without an epoch: one stopped before its first epoch's end
             rows.append(RunState(run, "not started", "not started" + (" (its folder exists: no epoch ended yet)"
                                                                       if d.is_dir() else "")))
     return rows
@@ -638,8 +644,10 @@ def status(args: argparse.Namespace) -> int:
         print(f"  waits: {label:<{width}}  {why}")
     if slot.on_cpu:
         models = " ".join(dict.fromkeys(r.run.model for r in slot.on_cpu))
+        two = len(slot.on_cpu) > 1  # one-trajectory steps use one core well: two processes train two runs at once
         print(f"  on a CPU (train.cpu_models): {', '.join(r.label for r in slot.on_cpu)}: vitfly reproduce "
-              f"--config {args.config} --preset {cfg.preset} --models {models} --stages train")
+              f"--config {args.config} --preset {cfg.preset} --models {models} --stages train"
+              + (" --threads 1, twice side by side (each takes a run the other is not on)" if two else ""))
     if all(r.state == "done" for r in rows):
         print(f"  every run is done: vitfly reproduce --config {args.config} --preset {cfg.preset} flies them")
     if getattr(args, "write_carry", False):

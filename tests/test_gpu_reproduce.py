@@ -29,6 +29,7 @@ import h5py
 import pytest
 import torch
 import yaml
+from test_run_lock import Holder
 
 from vitfly.datamodules.provenance import dataset_fingerprint
 from vitfly.errors import VitflyError
@@ -138,6 +139,24 @@ def assert_same_training(a: Path, b: Path) -> None:
             assert value.dtype == adam_b[i][key].dtype and torch.equal(value, adam_b[i][key]), (i, key)
 
 
+def test_status_asks_for_two_cpu_processes_where_two_cpu_runs_wait(tmp_path, capsys, code_tree):
+    """The paper preset's CPU runs train one trajectory a step, which one core does about as fast as two (measured
+    in docs/reproduce.md): with two or more of them not started, status's CPU line says to run the command twice
+    with one thread each; with one left, once, as it is."""
+    gpu = load_script("gpu")
+    assert gpu.main(["status", "--preset", "paper", "--run-dir", str(tmp_path / "empty")]) == 0
+    line = next(x for x in capsys.readouterr().out.splitlines() if "on a CPU (train.cpu_models)" in x)
+    assert line.endswith("--stages train --threads 1, twice side by side (each takes a run the other is not on)")
+    config = yaml.safe_load((REPO / "configs" / "reproduce.yaml").read_text())
+    config["presets"]["paper"]["train"].update(models=["lstmnet", "vit"], nostate_models=[], draws={},
+                                               cpu_models=["lstmnet"], slot_order=["vit"])
+    one = tmp_path / "one.yaml"
+    one.write_text(yaml.safe_dump(config))
+    assert gpu.main(["status", "--config", str(one), "--preset", "paper", "--run-dir", str(tmp_path / "empty")]) == 0
+    line = next(x for x in capsys.readouterr().out.splitlines() if "on a CPU (train.cpu_models)" in x)
+    assert line.endswith("--models lstmnet --stages train")
+
+
 @pytest.fixture
 def code_tree(monkeypatch):
     """The slot plans count the working tree a device call sends: here the code's alone, without the runs this
@@ -186,6 +205,16 @@ def test_a_run_stopped_in_one_slot_resumes_in_the_next_exactly(tmp_path, data, t
     assert "vit_lstm-state   unfinished: 1/2 epochs" in listing and "convnet-state    not started\n" in listing
     assert "convnet-nostate  not started (its folder exists: no epoch ended yet)\n" in listing
     assert "about 1 more slot of" in listing
+    assert re.search(r"starts: .*convnet-nostate", listing)
+    holder = Holder(home / "train" / "convnet-nostate")  # a process here trains it now, in its first epoch
+    try:
+        assert gpu.main(["status", *common, "--run-dir", str(home)]) == 0
+        busy = capsys.readouterr().out
+    finally:
+        holder.release()
+    assert (f"convnet-nostate  started here: no epoch ended yet, training here now (pid {holder.proc.pid}, since "
+            in busy)
+    assert not re.search(r"starts: .*convnet-nostate", busy)  # so no slot starts it beside that process
     # ViT+LSTM's lean state with fp32 moments and its best epoch in fp16 (the tiny preset flies the best epoch):
     # 3,563,663 x (12 x 0.85, last.* squeezed as planned + 2) + 196,608 bytes = 41.7 MiB, within what the working
     # tree travelling light (this repository's code without weights/ and docs/, nor the runs its carry/ holds:

@@ -283,6 +283,20 @@ def test_train_seed_retrains_every_run_with_another_seed_in_its_own_directory(mo
     assert dataclasses.replace(seeded, seed=0) == own  # nothing else of the recipe moves (30 epochs, the cap, ...)
 
 
+def test_threads_flag_sets_the_training_threads_and_refuses_negatives(monkeypatch):
+    import argparse
+
+    from vitfly.commands import reproduce as command
+
+    monkeypatch.chdir(REPO)
+    parser = argparse.ArgumentParser()
+    command.add_arguments(parser)
+    assert command.config_from_args(parser.parse_args(["--preset", "paper"])).threads == 0  # the YAML's: all cores
+    assert command.config_from_args(parser.parse_args(["--preset", "paper", "--threads", "1"])).threads == 1
+    with pytest.raises(VitflyError, match=r"--threads -1: expected 0 \(all cores\) or more"):
+        command.config_from_args(parser.parse_args(["--preset", "paper", "--threads", "-1"]))
+
+
 # -- training cost over sessions ----------------------------------------------------------------------------
 
 

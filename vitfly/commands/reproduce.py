@@ -24,17 +24,25 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         "directory")
     parser.add_argument("--stages", nargs="+", choices=STAGES, metavar="STAGE",
                         help=f"only these stages (run in the order {', '.join(STAGES)}); None: all of them")
+    parser.add_argument("--threads", type=int, metavar="N",
+                        help="torch threads for training instead of the config's `threads` (0: all cores); on a "
+                        "CPU two commands with --threads 1 side by side train two runs of a study at once")
     parser.add_argument("--no-progress", action="store_true", help="no progress bars")
 
 
 def config_from_args(args: argparse.Namespace):
-    """The study's ``ReproduceConfig``: the YAML and its preset, then --out, --data, --train-seed and --models."""
+    """The study's ``ReproduceConfig``: the YAML and its preset, then --out, --data, --threads, --train-seed and
+    --models."""
     import dataclasses
 
     from vitfly.errors import VitflyError
     from vitfly.workflows.reproduce_config import check_config, load_reproduce_config
 
     cfg = load_reproduce_config(args.config, args.preset, {"out": args.out, "data": args.data})
+    if args.threads is not None:
+        if args.threads < 0:
+            raise VitflyError(f"--threads {args.threads}: expected 0 (all cores) or more")
+        cfg = dataclasses.replace(cfg, threads=args.threads)
     if args.train_seed is not None:
         if args.out is None:
             raise VitflyError(f"--train-seed {args.train_seed}: give --out too (the preset's {cfg.out} holds the "

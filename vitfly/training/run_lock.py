@@ -86,3 +86,21 @@ def run_lock(run_dir: str | os.PathLike) -> Iterator[None]:
         with contextlib.suppress(FileNotFoundError):
             os.unlink(path)  # before letting go, so that a process that opened it sees it gone and opens anew
         os.close(fd)
+
+
+def training_now(run_dir: str | os.PathLike) -> dict | None:
+    """The record of the live process training ``run_dir`` ({} if it has not yet written one), or None if none
+    does. Read-only: the lock is tried and let go at once, and no file is created."""
+    try:
+        fd = os.open(Path(run_dir) / LOCK_NAME, os.O_RDONLY)
+    except FileNotFoundError:
+        return None
+    try:
+        try:
+            fcntl.flock(fd, fcntl.LOCK_SH | fcntl.LOCK_NB)
+        except BlockingIOError:
+            return _holder(fd)
+        fcntl.flock(fd, fcntl.LOCK_UN)
+        return None
+    finally:
+        os.close(fd)
