@@ -15,7 +15,7 @@ import pytest
 import yaml
 from test_datamodule import write_dataset
 
-from vitfly.training.run_lock import LOCK_NAME, RunBusy, run_lock
+from vitfly.training.run_lock import LOCK_NAME, RunBusy, run_lock, training_now
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -60,6 +60,18 @@ def test_a_second_process_is_told_which_process_trains_the_run(tmp_path):
     with run_lock(run):  # and the run is free again
         assert json.loads((run / LOCK_NAME).read_text())["pid"] == os.getpid()
     assert not (run / LOCK_NAME).exists()
+
+
+def test_training_now_names_the_live_holder_and_touches_nothing(tmp_path):
+    run = tmp_path / "run"
+    assert training_now(run) is None and not run.exists()  # no folder, no file made
+    holder = Holder(run)
+    try:
+        assert training_now(run)["pid"] == holder.proc.pid
+        assert training_now(run)["pid"] == holder.proc.pid  # asking twice lets go of nothing it holds
+    finally:
+        holder.kill()
+    assert (run / LOCK_NAME).exists() and training_now(run) is None  # a killed holder's file: nobody trains
 
 
 def test_a_killed_holder_never_blocks_the_next_training(tmp_path):
