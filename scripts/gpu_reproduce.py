@@ -535,12 +535,19 @@ def progress(marker: dict) -> str:
 
 
 def checked_runs(tmp: Path, src: Path, cfg, local: str) -> list[Path]:
-    """The returned run folders, every one checked (label, data hash against ``local``) before any is placed."""
+    """The returned run folders, every one checked (label, data hash against ``local``, no live training here)
+    before any is placed."""
     from scripts.gpu_slots import returned_hash
+    from vitfly.training.run_lock import training_now
 
     runs = sorted(p for p in tmp.iterdir() if p.is_dir())
     for run in runs:
         label = parse_label(run.name)
+        holder = training_now(run_dir(cfg, run.name))
+        if holder is not None:  # placing would pull the folder from under that process
+            who = f"pid {holder['pid']}" if "pid" in holder else "another process"
+            raise SystemExit(f"{src}: {run.name} is training here now ({who}); stop it (it resumes from its last "
+                             "checkpoint) or let it end, then unpack again; nothing unpacked")
         if returned_hash(run) != local:
             raise SystemExit(f"{src}: {run.name} was trained on dataset_hash {returned_hash(run)}; the local "
                              f"{cfg.data} has {local}; nothing unpacked")

@@ -90,6 +90,14 @@ def test_runs_trained_elsewhere_come_back_as_done(tmp_path, data, capsys):
     trained = run_dir / "train" / "convnet-nostate"
     original = load_network(trained / "checkpoints" / "best.ckpt")
     shutil.rmtree(trained)
+    holder = Holder(trained)  # a training here on the same run: unpacking would pull its folder away
+    try:
+        with pytest.raises(SystemExit, match=rf"convnet-nostate is training here now \(pid {holder.proc.pid}\); "
+                           r"stop it .* nothing unpacked"):
+            gpu.main(["unpack", *where, str(out)])
+    finally:
+        holder.release()
+    assert list(trained.iterdir()) == []  # nothing placed (the holder's folder is left, empty)
     assert gpu.main(["unpack", *where, str(out)]) == 0
     marker = json.loads((trained / "done.json").read_text())
     assert Path(marker["checkpoint"]) == (trained / "checkpoints" / "best.ckpt").resolve()
