@@ -178,3 +178,30 @@ def test_fit_cli_last_holds_the_latest_epoch_and_resumes_by_path_and_by_last(dat
     assert main(args) == 0
     assert sorted(epoch_column(run_dir_of(tmp_path / "c") / "metrics.csv", "val/loss")) == [4]
     assert load(ckpts / "last.ckpt")["epoch"] == 4
+
+
+def test_how_often_a_run_validates_never_changes_the_weights(data_path, tmp_path):
+    """LSTMnet draws dropout masks from the global generator; validating every epoch or only after the third
+    trains the same weights and optimiser moments, bit for bit (before, each validation's data loader drew its
+    worker seed from that generator and shifted every later mask), so the paper preset may validate every 5th
+    epoch. The run that validates less logs ``val/loss`` at epoch 2 only."""
+    kwargs = dict(batch_size=2, progress_bar=False, select="last",
+                  policy_kwargs={"tbptt_steps": 8, "lr": 1e-3, "cpu_threads": 1})
+    states = {}
+    for every in (1, 3):
+        out = tmp_path / f"every{every}"
+        train_policy(data_path, "lstmnet", out, max_epochs=3, trainer_kwargs={"check_val_every_n_epoch": every},
+                     **kwargs)
+        states[every] = load(out / "checkpoints/last.ckpt")
+        assert sorted(epoch_column(out / "metrics.csv", "val/loss")) == ([0, 1, 2] if every == 1 else [2])
+    one, three = states[1], states[3]
+    assert one["global_step"] == three["global_step"] > 0
+    assert all(torch.equal(one["state_dict"][k], three["state_dict"][k]) for k in one["state_dict"])
+    moments = [[t for s in c["optimizer_states"][0]["state"].values() for t in s.values()] for c in (one, three)]
+    assert len(moments[0]) > 0 and all(torch.equal(a, b) for a, b in zip(*moments, strict=True))
+    assert one["state_dict"].keys() == three["state_dict"].keys()
+    # the weights moved: lr 1e-3, not a frozen run
+    start = train_policy(data_path, "lstmnet", tmp_path / "zero", max_epochs=1, **{**kwargs, "policy_kwargs":
+                         {**kwargs["policy_kwargs"], "lr": 0.0}})
+    untrained = load(start)["state_dict"]
+    assert any(not torch.equal(untrained[k], one["state_dict"][k]) for k in untrained if "weight" in k)

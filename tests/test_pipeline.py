@@ -125,3 +125,20 @@ def test_a_field_added_to_train_stage_keeps_finished_runs_done():
     assert same_settings(recorded, wanted)
     assert not same_settings(recorded, train_settings(TrainStage(model="convnet", select="last"), "d.h5"))
     assert not same_settings({**recorded, "max_epochs": 7}, wanted) and not same_settings(None, wanted)
+
+
+def test_how_often_a_run_validated_counts_only_where_validation_chooses_the_epoch():
+    """A run flown from its last epoch (``select: last``, the paper preset) trained the same weights however often
+    it validated, so a finished run recorded without ``check_val_every_n_epoch`` stays done when the preset adds
+    it; a run flown from its best-validation epoch would have chosen among other epochs, so it does not."""
+    every5 = {"trainer_kwargs": {"check_val_every_n_epoch": 5, "precision": "32-true"}}
+    for select, same in (("last", True), ("best", False)):
+        recorded = train_settings(TrainStage(model="lstmnet", select=select, trainer_kwargs={"precision": "32-true"}),
+                                  "d.h5")
+        assert same_settings(recorded, train_settings(TrainStage(model="lstmnet", select=select, **every5), "d.h5")) \
+            is same
+    # any other trainer argument still counts
+    last = train_settings(TrainStage(model="lstmnet", select="last", **every5), "d.h5")
+    other = train_settings(TrainStage(model="lstmnet", select="last",
+                                      trainer_kwargs={"check_val_every_n_epoch": 5, "precision": "bf16-mixed"}), "d.h5")
+    assert not same_settings(last, other)

@@ -399,6 +399,7 @@ class TrajectoryDataModule(L.LightningDataModule):
             num_workers=self.num_workers,
             persistent_workers=self.num_workers > 0,
             batch_sampler=sampler,
+            generator=_own_generator(shuffle),
         )
 
     def on_before_batch_transfer(self, batch: dict, dataloader_idx: int) -> dict:
@@ -473,7 +474,8 @@ class TrajectoryDataModule(L.LightningDataModule):
         sampler = loader.batch_sampler
         if getattr(sampler, "prefetch", None) is not None:
             sampler.prefetch = None
-        return DataLoader(WindowIndexDataset(dataset.windows), collate_fn=collate_windows, batch_sampler=sampler)
+        return DataLoader(WindowIndexDataset(dataset.windows), collate_fn=collate_windows, batch_sampler=sampler,
+                          generator=_own_generator(shuffle))
 
     def train_dataloader(self) -> DataLoader:
         self._save_split_once()
@@ -497,3 +499,15 @@ class TrajectoryDataModule(L.LightningDataModule):
         if dataset is None:
             raise VitflyError("data.predict_path: no dataset given and no validation trajectories to predict on")
         return self._loader(dataset, shuffle=False)
+
+
+def _own_generator(shuffle: bool) -> torch.Generator | None:
+    """A generator of its own for a loader that draws nothing random (validation, test, predict).
+
+    A DataLoader draws a seed for its workers each time it starts, from the global generator unless it is given
+    one: a validation would shift every later dropout mask of the training, so how often a run validates
+    (``check_val_every_n_epoch``) would change the weights it trains. With its own generator it does not. The
+    training loader keeps the global one, whose state travels in checkpoints (``RngState``).
+    """
+    return None if shuffle else torch.Generator()
+

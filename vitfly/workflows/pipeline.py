@@ -196,13 +196,28 @@ def train_settings(t: TrainStage, data: str | Path) -> dict:
     return dataclasses.asdict(t) | {"data": str(data)}
 
 
+# Trainer arguments that change what a run logs, never the weights it trains (the validation loaders draw from
+# a generator of their own: vitfly.datamodules.datamodule), as long as no epoch is chosen by its validation loss
+VALIDATION_ONLY = ("check_val_every_n_epoch",)
+
+
 def same_settings(recorded: dict | None, wanted: dict) -> bool:
     """A finished run's recorded settings are ``wanted``; a field added to TrainStage since it was recorded counts
-    as its default, so that a new field never retrains the runs finished before it."""
+    as its default, so that a new field never retrains the runs finished before it. With ``select: last`` how
+    often a run validated (``VALIDATION_ONLY``) does not count: the weights are the same either way."""
     if recorded is None:
         return False
     defaults = dataclasses.asdict(TrainStage())
-    return {**{k: defaults[k] for k in wanted.keys() - recorded.keys() if k in defaults}, **recorded} == wanted
+    recorded = {**{k: defaults[k] for k in wanted.keys() - recorded.keys() if k in defaults}, **recorded}
+    return _weights_settings(recorded) == _weights_settings(wanted)
+
+
+def _weights_settings(settings: dict) -> dict:
+    """``settings`` less what cannot change the flown weights."""
+    if settings.get("select") != "last":
+        return settings
+    trainer = {k: v for k, v in (settings.get("trainer_kwargs") or {}).items() if k not in VALIDATION_ONLY}
+    return {**settings, "trainer_kwargs": trainer}
 
 
 @functools.lru_cache(maxsize=8)
