@@ -52,23 +52,64 @@ def steady_epoch_s(measured: list[float]) -> float:
     return max(measured[1:] or measured)
 
 
+def next_epoch_s(measured: list[float], val_s: list[float], validates: bool | None,
+                 hint_s: float | None = None) -> float:
+    """The length of the epoch about to start, from this slot's epochs (``measured``: wall seconds; ``val_s``: the
+    validation in each): the longest training part (``steady_epoch_s``), plus the longest validation if this epoch
+    validates. A run that validates every 5th epoch (the ``paper`` preset) thus judges four epochs of five by
+    their training alone. ``validates`` None (not known): the longest whole epoch. A validating epoch before any
+    validation was measured here adds the slot's ``hint_s`` (the previous slot's epoch) at most."""
+    if validates is None:
+        return steady_epoch_s(measured)
+    train_s = steady_epoch_s([m - v for m, v in zip(measured, val_s, strict=True)])
+    if not validates:
+        return train_s
+    validations = [v for v in val_s if v > 0]
+    if validations:
+        return train_s + steady_epoch_s(validations)
+    return max(train_s, hint_s or 0.0)
+
+
+def epoch_validates(trainer) -> bool | None:
+    """Whether the epoch the trainer is about to run ends with a validation (None: not known)."""
+    every = getattr(trainer, "check_val_every_n_epoch", None)
+    if trainer is None or every is None:  # None: validation counted in steps, not epochs
+        return None
+    return bool(trainer.enable_validation) and (trainer.current_epoch + 1) % every == 0
+
+
 class SlotStop(Callback):
     """Ends training at an epoch start when the next epoch would not finish before ``stop_at`` (a Unix time),
     or after ``max_epochs_this_slot`` epochs. ``epoch_s``: the expected epoch length before one is measured
-    here (the previous slot's); then the longest epoch measured here, validation included, leaving out the
-    slot's first once a second is measured: the first carries the one-off compile and CUDA-graph capture (97 s
-    against 37 s for the paper arm's ViT+LSTM on an H100), which would otherwise cost a slot its last epoch."""
+    here (the previous slot's); then this slot's epochs say (``next_epoch_s``): the longest training part,
+    plus the longest validation where the next epoch validates, leaving out the slot's first epoch once a
+    second is measured: the first carries the one-off compile and CUDA-graph capture (97 s against 37 s for the
+    paper arm's ViT+LSTM on an H100), which would otherwise cost a slot its last epoch."""
 
     def __init__(self, stop_at: float | None, max_epochs_this_slot: int | None, epoch_s: float | None = None):
         self.stop_at, self.max_epochs_this_slot, self.epoch_s = stop_at, max_epochs_this_slot, epoch_s
-        self.trained, self._started, self.measured = 0, None, []  # measured: this slot's epochs, seconds
+        self.hint_s = epoch_s
+        self.trained, self._started = 0, None
+        self.measured, self.val_s = [], []  # this slot's epochs: wall seconds, and the validation's in each
+        self._validating_since: float | None = None
+        self._val_s = 0.0
+
+    def on_validation_start(self, trainer, pl_module) -> None:
+        self._validating_since = None if trainer.sanity_checking else time.time()
+
+    def on_validation_end(self, trainer, pl_module) -> None:
+        if self._validating_since is not None:
+            self._val_s += time.time() - self._validating_since
+            self._validating_since = None
 
     def on_train_epoch_start(self, trainer, pl_module) -> None:
         now = time.time()
         if self._started is not None:
             self.trained += 1
             self.measured.append(now - self._started)
-            self.epoch_s = steady_epoch_s(self.measured)
+            self.val_s.append(self._val_s)
+            self.epoch_s = next_epoch_s(self.measured, self.val_s, epoch_validates(trainer), self.hint_s)
+        self._val_s = 0.0
         reason = stop_reason(now, self.stop_at, self.epoch_s, self.trained, self.max_epochs_this_slot)
         if reason:
             raise SlotEnded(reason)

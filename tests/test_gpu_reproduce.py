@@ -24,6 +24,7 @@ import sys
 import tarfile
 import time
 from pathlib import Path
+from types import SimpleNamespace
 
 import h5py
 import pytest
@@ -573,6 +574,43 @@ def test_a_slot_judges_the_next_epoch_by_its_steady_epochs(monkeypatch):
     assert stop.epoch_s == 55.0 and stop.trained == 3
     with pytest.raises(slots.SlotEnded, match="about 55 s"):
         stop.on_train_epoch_start(None, None)  # t = 259: 259 + 55 > 300
+
+
+def test_a_slot_judges_an_epoch_by_whether_it_validates(monkeypatch):
+    """A run validating every 5th epoch (the paper preset) trains epochs 3-8 in a slot from t = 0 to a deadline at
+    t = 78: 10 s of training an epoch (the slot's first 20 s: compilation), 6 s more where it validates (epoch 4,
+    0-based). The epochs end at 20, 36 (validated), 46, 56, 66; at t = 66 epoch 8 does not validate, 10 s: it ends
+    at 76 and starts, where the longest whole epoch (16 s) would have stopped the run; at 76 epoch 9 validates,
+    16 s, past the deadline: the slot ends."""
+    slots = load_script("gpu_slots")
+    clock = [0.0]
+    monkeypatch.setattr(slots.time, "time", lambda: clock[0])
+    trainer = SimpleNamespace(check_val_every_n_epoch=5, enable_validation=True, sanity_checking=False,
+                              current_epoch=3)
+    stop = slots.SlotStop(stop_at=78.0, max_epochs_this_slot=None, epoch_s=30.0)
+    for train_s in (20.0, 10.0, 10.0, 10.0, 10.0, 10.0):  # epochs 3-8
+        stop.on_train_epoch_start(trainer, None)
+        clock[0] += train_s
+        if (trainer.current_epoch + 1) % 5 == 0:
+            stop.on_validation_start(trainer, None)
+            clock[0] += 6.0
+            stop.on_validation_end(trainer, None)
+        trainer.current_epoch += 1
+    assert clock[0] == 76.0 and stop.trained == 5 and stop.epoch_s == 10.0  # epoch 8 was judged 10 s at t = 66
+    assert stop.val_s == [0.0, 6.0, 0.0, 0.0, 0.0]
+    with pytest.raises(slots.SlotEnded, match="about 16 s"):
+        stop.on_train_epoch_start(trainer, None)  # epoch 9 at t = 76: 76 + 10 + 6 > 78
+    assert slots.steady_epoch_s(stop.measured) == 16.0  # what judged every epoch before
+
+    assert slots.next_epoch_s([20.0, 16.0, 10.0], [0.0, 6.0, 0.0], validates=None) == 16.0  # not known: as before
+    # a validating epoch before any validation was measured here: the previous slot's epoch at most
+    assert slots.next_epoch_s([20.0, 10.0], [0.0, 0.0], validates=True, hint_s=14.0) == 14.0
+    assert slots.next_epoch_s([20.0, 10.0], [0.0, 0.0], validates=True) == 10.0
+    assert slots.epoch_validates(None) is None
+    assert slots.epoch_validates(SimpleNamespace(check_val_every_n_epoch=None, enable_validation=True,
+                                                 current_epoch=4)) is None
+    assert slots.epoch_validates(SimpleNamespace(check_val_every_n_epoch=5, enable_validation=False,
+                                                 current_epoch=4)) is False
 
 
 def test_a_run_still_going_at_the_deadline_is_killed():
