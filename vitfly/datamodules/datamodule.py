@@ -510,4 +510,3 @@ def _own_generator(shuffle: bool) -> torch.Generator | None:
     training loader keeps the global one, whose state travels in checkpoints (``RngState``).
     """
     return None if shuffle else torch.Generator()
-
