@@ -23,6 +23,7 @@ from pathlib import Path
 from lightning.pytorch.callbacks import Callback
 
 from scripts.gpu_pack import safe_extract, tree_bytes  # noqa: F401  (one unpacking path; the tests call it here)
+from vitfly.training.epoch_times import ValidationClock
 from vitfly.training.metrics_csv import set_aside
 
 MARKER = "unfinished.json"
@@ -91,25 +92,21 @@ class SlotStop(Callback):
         self.hint_s = epoch_s
         self.trained, self._started = 0, None
         self.measured, self.val_s = [], []  # this slot's epochs: wall seconds, and the validation's in each
-        self._validating_since: float | None = None
-        self._val_s = 0.0
+        self._validation = ValidationClock(lambda: time.time())  # late-bound: the tests set the clock
 
     def on_validation_start(self, trainer, pl_module) -> None:
-        self._validating_since = None if trainer.sanity_checking else time.time()
+        self._validation.start(trainer)
 
     def on_validation_end(self, trainer, pl_module) -> None:
-        if self._validating_since is not None:
-            self._val_s += time.time() - self._validating_since
-            self._validating_since = None
+        self._validation.stop()
 
     def on_train_epoch_start(self, trainer, pl_module) -> None:
         now = time.time()
         if self._started is not None:
             self.trained += 1
             self.measured.append(now - self._started)
-            self.val_s.append(self._val_s)
+            self.val_s.append(self._validation.take())
             self.epoch_s = next_epoch_s(self.measured, self.val_s, epoch_validates(trainer), self.hint_s)
-        self._val_s = 0.0
         reason = stop_reason(now, self.stop_at, self.epoch_s, self.trained, self.max_epochs_this_slot)
         if reason:
             raise SlotEnded(reason)

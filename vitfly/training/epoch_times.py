@@ -8,8 +8,32 @@ an epoch. Benchmarks time the step alone; these two columns time the run itself,
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 
 from lightning.pytorch.callbacks import Callback
+
+
+class ValidationClock:
+    """Seconds spent in validation loops since the last ``take``; the sanity check before the first epoch is not
+    counted. Call ``start``/``stop`` from a callback's ``on_validation_start``/``on_validation_end``."""
+
+    def __init__(self, clock: Callable[[], float] = time.monotonic) -> None:
+        self.clock = clock
+        self._since: float | None = None
+        self._total_s = 0.0
+
+    def start(self, trainer) -> None:
+        self._since = None if trainer.sanity_checking else self.clock()
+
+    def stop(self) -> None:
+        if self._since is not None:
+            self._total_s += self.clock() - self._since
+            self._since = None
+
+    def take(self) -> float:
+        """The seconds counted so far; the count starts again from 0."""
+        total, self._total_s = self._total_s, 0.0
+        return total
 
 
 class EpochTimes(Callback):
@@ -19,23 +43,21 @@ class EpochTimes(Callback):
 
     def __init__(self) -> None:
         self._epoch_start = 0.0
-        self._val_start: float | None = None
-        self._val_s = 0.0
+        self._validation = ValidationClock()
 
     def on_train_epoch_start(self, trainer, pl_module) -> None:
         self._epoch_start = time.monotonic()
-        self._val_s = 0.0
+        self._validation.take()
 
     def on_validation_start(self, trainer, pl_module) -> None:
-        self._val_start = None if trainer.sanity_checking else time.monotonic()
+        self._validation.start(trainer)
 
     def on_validation_end(self, trainer, pl_module) -> None:
-        if self._val_start is not None:
-            self._val_s += time.monotonic() - self._val_start
-            self._val_start = None
+        self._validation.stop()
 
     def on_train_epoch_end(self, trainer, pl_module) -> None:
         # Lightning runs the epoch's validation before this hook: the epoch's whole time is known here
         epoch_s = time.monotonic() - self._epoch_start
-        pl_module.log("time/train_s", epoch_s - self._val_s, on_step=False, on_epoch=True)
-        pl_module.log("time/val_s", self._val_s, on_step=False, on_epoch=True)
+        val_s = self._validation.take()
+        pl_module.log("time/train_s", epoch_s - val_s, on_step=False, on_epoch=True)
+        pl_module.log("time/val_s", val_s, on_step=False, on_epoch=True)
