@@ -73,10 +73,9 @@ def next_epoch_s(measured: list[float], val_s: list[float], validates: bool | No
 
 def epoch_validates(trainer) -> bool | None:
     """Whether the epoch the trainer is about to run ends with a validation (None: not known)."""
-    every = getattr(trainer, "check_val_every_n_epoch", None)
-    if trainer is None or every is None:  # None: validation counted in steps, not epochs
+    if trainer is None or trainer.check_val_every_n_epoch is None:  # None: validation counted in steps
         return None
-    return bool(trainer.enable_validation) and (trainer.current_epoch + 1) % every == 0
+    return bool(trainer.enable_validation) and (trainer.current_epoch + 1) % trainer.check_val_every_n_epoch == 0
 
 
 class SlotStop(Callback):
