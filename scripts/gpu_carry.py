@@ -166,7 +166,8 @@ def park(cfg, r, dst: Path, moments: str) -> int:
         checkpoint_files.write(lean_last(run, moments), dst, LAST)
         squeeze_file(checkpoint_files.paths(dst, LAST)[0])
         (dst / MARKER).write_text(json.dumps({**marker, "carried_moments": moments}) + "\n")
-    copy_run_files(run, dst, None)
+    # a run training here now may have logged an epoch its last.ckpt does not hold yet: its rows stay behind
+    copy_run_files(run, dst, None if r.state == "done" else marker["epochs"])
     return tree_bytes(dst)
 
 

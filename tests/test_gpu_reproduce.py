@@ -354,6 +354,11 @@ def test_runs_outlive_the_session_in_the_carry(tmp_path, data, two_epochs, capsy
     assert sorted(p.name for p in (home / "train" / "convnet-state" / "checkpoints").iterdir()) == [
         "best.ckpt", "last.ckpt"]  # read back before anything else reads them
     stop_after_one_epoch(cfg, "convnet-nostate", data, home / "train" / "convnet-nostate")
+    live = home / "train" / "convnet-nostate" / "metrics.csv"
+    with open(live) as f:  # carried while training: the logger has a row of an epoch last.ckpt does not hold
+        header = next(csv.reader(f))
+    with open(live, "a", newline="") as f:
+        csv.DictWriter(f, fieldnames=header).writerow({"epoch": 1, "step": 99})
 
     capsys.readouterr()
     assert gpu.main(["carry", *common, "--run-dir", str(home), "--carry-dir", str(carry)]) == 0
@@ -365,6 +370,8 @@ def test_runs_outlive_the_session_in_the_carry(tmp_path, data, two_epochs, capsy
                      "last.safetensors.bpz", "metrics.csv", "split.json", "unfinished.json"]  # last.* squeezed
     marker = json.loads((kept / "convnet-nostate" / "unfinished.json").read_text())  # written for the CPU run
     assert (marker["epochs"], marker["max_epochs"], marker["slots"][0]["device"]) == (1, 2, "cpu")
+    with open(kept / "convnet-nostate" / "metrics.csv") as f:
+        assert {r["epoch"] for r in csv.DictReader(f)} == {"0"}  # the rows of the epoch it holds, no more
     assert 0 < marker["slots"][0]["fit_s"] == marker["slots"][0]["wall_s"]  # a CPU run's time is its Timer's
     assert marker["dataset_hash"] == dataset_fingerprint(data)["dataset_hash"]
     # a preset that trains ConvNet on a CPU: a slot does not resume its carried runs unless --runs names them
