@@ -373,3 +373,62 @@ def test_round_zero_can_start_from_the_shipped_weights(tmp_path):
     # the stages are keyed by the shipped file's hash: other weights under the same name start a new run
     key = json.dumps([s.key for s in plan_stages(cfg)], default=str)
     assert manifest_entry("convnet")["sha256"][:16] in key
+
+
+# --- the batched engine -------------------------------------------------------------------------------
+
+
+def flights(path: Path) -> tuple[list, dict]:
+    with open_trajectories(path, check_values=False) as tf:
+        return [tf[m] for m in range(len(tf))], tf.config
+
+
+def assert_same_flights(ref: list, got: list) -> None:
+    assert len(ref) == len(got) > 0
+    for a, b in zip(ref, got, strict=True):
+        assert (a.seed, a.length, a.n_collisions, a.success, a.dagger_round, a.dagger_beta) == (
+            b.seed, b.length, b.n_collisions, b.success, b.dagger_round, b.dagger_beta)
+        np.testing.assert_array_equal(a.depth, b.depth)  # uint8: the same pixels
+        for name in ("position", "velocity", "quat", "velocity_cmd", "velocity_cmd_executed"):
+            np.testing.assert_allclose(getattr(b, name), getattr(a, name), rtol=0, atol=1e-6, err_msg=name)
+
+
+def test_a_round_with_a_student_flies_alike_on_the_batched_engine(tmp_path):
+    """A round that mixes a student (the shipped ConvNet) with the expert, on the batched engine in float64 on the
+    CPU: the numpy engine's flights, labels and flown commands, the engine stored with the data."""
+    mixed = {"schedule": {"beta0": 0.5}, "train": {"init_checkpoint": "pretrained:convnet"}}
+    numpy_cfg = tiny(tmp_path / "numpy", **mixed)
+    batched_cfg = tiny(tmp_path / "batched", **mixed, data={"collect": {"sim": "batched"}})
+    for cfg in (numpy_cfg, batched_cfg):
+        run_dagger(cfg, stop_after="r0.collect", progress=False)
+    ref, ref_config = flights(tmp_path / "numpy/data/dagger.h5")
+    got, got_config = flights(tmp_path / "batched/data/dagger.h5")
+    assert_same_flights(ref, got)
+    assert any(np.abs(r.velocity_cmd_executed - r.velocity_cmd).max() > 0 for r in got)  # the student flew too
+    assert "sim" not in ref_config["collect"]
+    assert got_config["collect"]["sim"] == {"engine": "batched", "device": "cpu", "dtype": "float64", "compile": False}
+    shares = [json.loads((tmp_path / f"{name}/manifests/r0.collect.json").read_text())["result"]["expert_tick_share"]
+              for name in ("numpy", "batched")]
+    assert shares[0] == shares[1] and 0 < shares[0] < 1
+
+
+def test_the_command_line_flies_every_flight_on_the_batched_engine(tiny_run, tmp_path, capsys):
+    """``vitfly dagger --sim batched``: round 0's expert flights (the numpy run's, row for row) and the sweeps'
+    engine; a resume with the other engine is refused before anything runs."""
+    from vitfly.cli import main
+    from vitfly.workflows.dagger_config import eval_stage
+
+    out = tmp_path / "run"
+    common = ["dagger", "--config", str(CONFIG), "--preset", "tiny", "--out", str(out), "--threads", "1",
+              "--no-progress"]
+    assert main([*common, "--sim", "batched", "--stop-after", "r0.collect"]) == 0
+    got, config = flights(out / "data/dagger.h5")
+    ref, _ = flights(tiny_run.out / "data/dagger.h5")
+    assert_same_flights([r for r in ref if r.dagger_round == 0], got)
+    assert config["collect"]["sim"]["engine"] == "batched"
+    batched = tiny(out, data={"collect": {"sim": "batched"}}, evaluate={"sim": "batched", "sim_dtype": "float32"})
+    stage = eval_stage(batched)
+    assert (stage.sim, stage.sim_dtype, stage.physics) == ("batched", "float32", "native")
+    capsys.readouterr()
+    assert main(common) == 2  # the numpy engine over flights the batched one made
+    assert "round 0" in capsys.readouterr().err

@@ -297,6 +297,24 @@ def test_threads_flag_sets_the_training_threads_and_refuses_negatives(monkeypatc
         command.config_from_args(parser.parse_args(["--preset", "paper", "--threads", "-1"]))
 
 
+def test_engine_flags_choose_the_sweeps_engine(monkeypatch):
+    import argparse
+
+    from vitfly.commands import reproduce as command
+    from vitfly.workflows.reproduce_config import eval_stage
+
+    monkeypatch.chdir(REPO)
+    parser = argparse.ArgumentParser()
+    command.add_arguments(parser)
+    cfg = command.config_from_args(parser.parse_args(["--preset", "paper", "--sim", "batched", "--sim-dtype",
+                                                      "float32", "--sim-compile"]))
+    stage = eval_stage(cfg, ["trees"], [3.0], 1)
+    assert (stage.sim, stage.sim_device, stage.sim_dtype, stage.sim_compile) == ("batched", "cpu", "float32", True)
+    assert cfg.collect == command.config_from_args(parser.parse_args(["--preset", "paper"])).collect  # data as is
+    with pytest.raises(VitflyError, match="--sim: evaluate: field 'sim_dtype' is 'float32' but 'sim' is 'numpy'"):
+        command.config_from_args(parser.parse_args(["--preset", "paper", "--sim-dtype", "float32"]))
+
+
 # -- training cost over sessions ----------------------------------------------------------------------------
 
 

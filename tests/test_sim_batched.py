@@ -15,6 +15,7 @@ from vitfly.sim.batched.camera import BatchedCamera, pixel_rays
 from vitfly.sim.batched.controller import velocity_control
 from vitfly.sim.batched.dynamics import hover_state, physics_step, quat_to_rotation
 from vitfly.sim.batched.expert import expert_commands, visible_cover
+from vitfly.sim.batched.policies import BatchedMixture, NumpyPolicy, as_batched_policy
 from vitfly.sim.batched.rollout import BatchedSettings, run_batched
 from vitfly.sim.batched.scenes import scene_batch
 from vitfly.sim.camera import CAMERA_PRESETS, CameraConfig, DepthCamera
@@ -264,7 +265,7 @@ def test_labelled_numpy_policy_and_camera_noise_equal_the_numpy_engine():
         return MixturePolicy(ExpertPolicy(), StraightPolicy(), beta=0.5, seeds=3)
 
     ref = run_episodes(scenes, [5.0] * 3, mixture(), cfg, camera_seed=9)
-    got = run_batched(scenes, [5.0] * 3, mixture(), cfg, camera_seed=9)
+    got = run_batched(scenes, [5.0] * 3, NumpyPolicy(mixture()), cfg, camera_seed=9)  # the host adapter's labels
     assert got[0].log.label is not None
     assert_same_episodes(ref, got, {})
     # the device's own generator: same pixels dropped out as often, other draws
@@ -272,6 +273,33 @@ def test_labelled_numpy_policy_and_camera_noise_equal_the_numpy_engine():
                               settings=BatchedSettings(noise_source="torch"))
     dropped = np.mean(torch_noise[0].log.depth == 0)
     assert 0.03 < dropped < 0.07
+
+
+def test_a_mixture_with_a_learned_student_equals_the_numpy_engine():
+    # DAgger's flights: the expert and a recurrent student, one of them per env and tick; on the batched engine
+    # both run as tensor code (BatchedMixture, the network's own path) with the numpy mixture's draws and counts
+    from vitfly.eval.learned_policy import LearnedPolicy
+    from vitfly.zoo import create_model
+
+    torch.manual_seed(1)
+    net = create_model("lstmnet")
+    scenes = [make_scene("spheres", "medium", s) for s in range(3)]
+    cfg = short_config(timeout_s=2.0, goal_x_m=8.0)
+
+    def mixture():
+        return MixturePolicy(ExpertPolicy(), LearnedPolicy(net), beta=0.5, seeds=[[0, 1, k] for k in range(3)])
+
+    ref_mix, got_mix = mixture(), mixture()
+    assert isinstance(as_batched_policy(got_mix), BatchedMixture)
+    ref = run_episodes(scenes, [7.0, 5.0, 3.0], ref_mix, cfg)
+    got = run_batched(scenes, [7.0, 5.0, 3.0], got_mix, cfg)
+    assert_same_episodes(ref, got, {})
+    assert len({len(r.log) for r in got}) > 1  # episodes end on different ticks: the draws follow who flies
+    np.testing.assert_array_equal(got_mix.ticks, [len(r.log) for r in got])
+    np.testing.assert_array_equal(got_mix.expert_ticks, ref_mix.expert_ticks)
+    for r, flown_by_expert in zip(got, got_mix.expert_ticks, strict=True):  # each flew both, the labels always
+        student_ticks = np.any(r.log.command != r.log.label, axis=1).sum()
+        assert 0 < flown_by_expert and student_ticks == len(r.log) - flown_by_expert
 
 
 def test_float32_runs_close_to_float64():

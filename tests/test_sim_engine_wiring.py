@@ -208,7 +208,7 @@ def test_workflows_pass_the_engine_through(tmp_path):
     from pathlib import Path
 
     from vitfly.errors import VitflyError
-    from vitfly.workflows.dagger_config import load_dagger_config
+    from vitfly.workflows.dagger_config import base_collect, load_dagger_config
     from vitfly.workflows.pipeline import EvalStage, sweep_config
     from vitfly.workflows.reproduce_config import ReproduceConfig, ReproduceEvaluate, eval_stage
 
@@ -218,5 +218,10 @@ def test_workflows_pass_the_engine_through(tmp_path):
     assert (stage.sim, stage.sim_device, stage.sim_dtype) == ("batched", "cpu", "float64")
     repo = Path(__file__).resolve().parents[1]
     data = {"collect_config": str(repo / "configs/collect/spheres.yaml"), "collect": {"sim": "batched"}}
-    with pytest.raises(VitflyError, match="dagger flies its rounds .* with the numpy engine"):
-        load_dagger_config(repo / "configs/dagger.yaml", "tiny", {"out": str(tmp_path), "data": data})
+    dagger = repo / "configs/dagger.yaml"
+    cfg = load_dagger_config(dagger, "tiny", {"out": str(tmp_path), "data": data})
+    assert (base_collect(cfg).engine, base_collect(cfg).num_envs) == (SimEngine("batched"), cfg.data.num_envs)
+    with pytest.raises(VitflyError, match="data.workers is 2 with data.collect.sim batched"):
+        load_dagger_config(dagger, "tiny", {"out": str(tmp_path), "data": {**data, "workers": 2}})
+    with pytest.raises(VitflyError, match="data.collect.num_envs is set by the workflow; use data.num_envs"):
+        load_dagger_config(dagger, "tiny", {"out": str(tmp_path), "data": {"collect": {"num_envs": 4}}})

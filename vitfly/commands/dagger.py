@@ -6,6 +6,7 @@ import argparse
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
+    from vitfly.commands.engine_flags import add_engine_arguments
     from vitfly.workflows.dagger_stages import STAGE_NAMES_HELP
 
     parser.add_argument("--config", default="dagger",
@@ -17,19 +18,22 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--rounds", type=int, help="DAgger rounds after round 0 (overrides schedule.rounds)")
     parser.add_argument("--threads", type=int,
                         help="torch threads for training, the students' flights and the evaluation (0: all cores)")
+    add_engine_arguments(parser, "every flight (the rounds' collections and the sweeps; the paths fly numpy)")
     parser.add_argument("--stop-after", metavar="STAGE",
                         help=f"stop after this stage ({STAGE_NAMES_HELP}); rerun without it to go on")
     parser.add_argument("--no-progress", action="store_true", help="no progress bars")
 
 
 def run(args: argparse.Namespace) -> int:
+    from vitfly.commands.engine_flags import engine_overrides
     from vitfly.workflows.dagger import run_dagger
     from vitfly.workflows.dagger_config import load_dagger_config
 
+    engine = engine_overrides(args)  # one engine for the collections and the sweeps
     overrides = {"out": args.out, "threads": args.threads, "train": {"model": args.model},
-                 "schedule": {"rounds": args.rounds}}
+                 "schedule": {"rounds": args.rounds}, "data": {"collect": engine}, "evaluate": dict(engine)}
     if args.threads:
-        overrides["evaluate"] = {"threads": args.threads}
+        overrides["evaluate"]["threads"] = args.threads
     cfg = load_dagger_config(args.config, args.preset, overrides)
     run_dagger(cfg, args.stop_after, progress=not args.no_progress)
     return 0

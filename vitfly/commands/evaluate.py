@@ -9,8 +9,8 @@ from __future__ import annotations
 
 import argparse
 
+from vitfly.commands.engine_flags import add_engine_arguments
 from vitfly.eval.config import BACKENDS, ENVS, load_sweep_config
-from vitfly.sim.engine import SIM_DTYPES, SIM_ENGINES
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -44,14 +44,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--physics", choices=("auto", "pybullet", "native"),
                         help="rigid-body physics back end, stated in every trial record (config default: auto, "
                              "pybullet where installed, else native)")
-    parser.add_argument("--sim", choices=SIM_ENGINES,
-                        help="simulator engine, stated in every trial record and part of its key: numpy (default) or "
-                             "batched (torch, the native physics; float64 on the CPU gives the numpy engine's results)")
-    parser.add_argument("--sim-device", help="the batched engine's device: cpu (default) or cuda[:N]")
-    parser.add_argument("--sim-dtype", choices=SIM_DTYPES,
-                        help="the batched engine's precision: float64 (default, exact) or float32 (faster)")
-    parser.add_argument("--sim-compile", action="store_true", default=None,
-                        help="the batched engine's kernels through torch.compile (seconds once, then faster)")
+    add_engine_arguments(parser, "the trials")
     parser.add_argument("--timeout", type=float, dest="timeout_s", help="trial timeout, s (default: scales w/ speed)")
     parser.add_argument("--camera", nargs="+", metavar="FIELD=VALUE", type=_camera_setting,
                         help="camera settings (e.g. vertical_fov_deg=70, or preset=camera_config_yaml); "

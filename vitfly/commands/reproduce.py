@@ -6,6 +6,7 @@ import argparse
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
+    from vitfly.commands.engine_flags import add_engine_arguments
     from vitfly.workflows.reproduce_config import STAGES
 
     parser.add_argument("--config", default="reproduce",
@@ -27,14 +28,16 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--threads", type=int, metavar="N",
                         help="torch threads for training instead of the config's `threads` (0: all cores); on a "
                         "CPU two commands with --threads 1 side by side train two runs of a study at once")
+    add_engine_arguments(parser, "the sweeps (the data stage collects as the YAML's collect section says)")
     parser.add_argument("--no-progress", action="store_true", help="no progress bars")
 
 
 def config_from_args(args: argparse.Namespace):
-    """The study's ``ReproduceConfig``: the YAML and its preset, then --out, --data, --threads, --train-seed and
-    --models."""
+    """The study's ``ReproduceConfig``: the YAML and its preset, then --out, --data, --threads, --train-seed,
+    --models and the engine flags (--sim ...)."""
     import dataclasses
 
+    from vitfly.commands.engine_flags import engine_overrides
     from vitfly.errors import VitflyError
     from vitfly.workflows.reproduce_config import check_config, load_reproduce_config
 
@@ -58,8 +61,11 @@ def config_from_args(args: argparse.Namespace):
             draws={run: seeds for run, seeds in t.draws.items() if run.removesuffix("-nostate") in args.models},
             slot_order=[m for m in t.slot_order if m in args.models],
             cpu_models=[m for m in t.cpu_models if m in args.models]))
-    if args.models or args.train_seed is not None:
-        check_config(cfg, "--models" if args.models else "--train-seed")
+    engine = engine_overrides(args)
+    if engine:  # the sweeps' engine
+        cfg = dataclasses.replace(cfg, evaluate=dataclasses.replace(cfg.evaluate, **engine))
+    if args.models or args.train_seed is not None or engine:
+        check_config(cfg, "--models" if args.models else "--train-seed" if args.train_seed is not None else "--sim")
     return cfg
 
 

@@ -123,14 +123,18 @@ class MixturePolicy:
             u[i] = self._rngs[i].random()
         return u
 
-    def __call__(self, obs: Observation) -> LabelledCommands:
-        active = np.asarray(obs.active, dtype=bool)
-        label = np.asarray(self.expert(obs), dtype=np.float64)
-        student = label if self.student is None else np.asarray(self.student(obs), dtype=np.float64)
+    def choose(self, active: np.ndarray) -> np.ndarray:
+        """(N,) bool: the active envs that fly the expert's command this tick; drawn and counted."""
+        active = np.asarray(active, dtype=bool)
         expert_flies = active & (self.draw(active) < self.beta)  # NaN < beta is False
-        command = np.where(expert_flies[:, None], label, student)
         self.expert_ticks += expert_flies
         self.ticks += active
+        return expert_flies
+
+    def __call__(self, obs: Observation) -> LabelledCommands:
+        label = np.asarray(self.expert(obs), dtype=np.float64)
+        student = label if self.student is None else np.asarray(self.student(obs), dtype=np.float64)
+        command = np.where(self.choose(obs.active)[:, None], label, student)
         return LabelledCommands(command=command, label=label)
 
 

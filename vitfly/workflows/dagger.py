@@ -127,8 +127,8 @@ def stage_collect(cfg: DaggerConfig, stage: Stage, student: Path | str | None, p
                   on_trajectory: Callable[[int], None] | None = None) -> dict:
     """Fly round ``stage.round``'s trajectories not yet in the DAgger dataset and append each as it ends."""
     from vitfly.sim.collect import ordered_records, start_pool, trajectory_spec
+    from vitfly.sim.engine import fly
     from vitfly.sim.policies import ExpertPolicy, MixturePolicy
-    from vitfly.sim.rollout import run_episodes
     from vitfly.sim.scenes import make_scene
 
     r = stage.round
@@ -170,7 +170,8 @@ def stage_collect(cfg: DaggerConfig, stage: Stage, student: Path | str | None, p
                         if on_trajectory is not None:
                             on_trajectory(writer.num_trajectories)
 
-                    run_episodes(scenes, [specs[k][1] for k in batch], mix, rollout, on_episode_end=finished)
+                    fly(scenes, [specs[k][1] for k in batch], mix, rollout, on_episode_end=finished,
+                        engine=collect_cfg.engine)
     finally:
         if pool is not None:
             pool.shutdown(cancel_futures=True)

@@ -39,12 +39,14 @@ class DaggerData:
     """The flights: what every round flies and how many."""
 
     collect_config: str | None = "configs/collect/spheres.yaml"  # base collect YAML (env, preset, speeds, sensor)
-    collect: dict = field(default_factory=dict)  # its overrides (not trajectories, seed or workers: set here)
+    # its overrides (not trajectories, seed, workers or num_envs: set here); sim: batched flies every round on
+    # the batched engine (sim_device, sim_dtype, sim_compile), num_envs flights at a time
+    collect: dict = field(default_factory=dict)
     seed: int = 0  # round i flies collection seed seed + i; the baseline's extras seed + 500 + i
     expert_trajectories: int = 60  # round 0
     trajectories_per_round: int = 30  # rounds >= 1
-    num_envs: int = 10  # student flights stepped in lockstep (one batched network call per tick)
-    workers: int = 1  # processes for the expert-only flights (round 0 at beta 1, the baseline's extras)
+    num_envs: int = 10  # flights stepped in lockstep (one batched network call per tick); every flight on sim batched
+    workers: int = 1  # processes for the expert-only flights (round 0 at beta 1, the baseline's extras); numpy engine
 
 
 @dataclass
@@ -93,6 +95,10 @@ class DaggerEvaluate:
     timeout_s: float | None = None
     device: str = "cpu"  # learned policies' network, also for the students' training flights
     baselines: list[str] = field(default_factory=lambda: ["expert"])
+    sim: str = "numpy"  # simulator engine of the sweeps: numpy or batched (vitfly.sim.engine); paths fly numpy
+    sim_device: str = "cpu"  # the batched engine's device (with device, the same card: observations stay on it)
+    sim_dtype: str = "float64"  # the batched engine's precision
+    sim_compile: bool = False  # the batched engine's kernels through torch.compile
 
 
 @dataclass
@@ -145,7 +151,8 @@ class DaggerConfig:
 SECTIONS = (("data", DaggerData), ("schedule", DaggerSchedule), ("train", DaggerTrain),
             ("evaluate", DaggerEvaluate), ("paths", DaggerPaths), ("report", DaggerReport))
 RESERVED_COLLECT_KEYS = {"trajectories": "data.expert_trajectories / data.trajectories_per_round",
-                         "seed": "data.seed", "workers": "data.workers"}
+                         "seed": "data.seed", "workers": "data.workers", "num_envs": "data.num_envs"}
+SIM_FIELDS = ("sim", "sim_device", "sim_dtype", "sim_compile")
 
 
 def deep_merge(base: dict, extra: dict) -> dict:
@@ -215,9 +222,10 @@ def check_config(cfg: DaggerConfig, source: str) -> None:
     for key in d.collect:
         if key in RESERVED_COLLECT_KEYS:
             raise VitflyError(f"{source}: data.collect.{key} is set by the workflow; use {RESERVED_COLLECT_KEYS[key]}")
-    if base_collect(cfg, source).engine.batched:  # the collect YAML and its overrides are valid
-        raise VitflyError(f"{source}: data.collect.sim is 'batched', but dagger flies its rounds (expert-student "
-                          "mixtures) with the numpy engine; use sim numpy")
+    if d.workers > 1 and d.collect.get("sim") == "batched":
+        raise VitflyError(f"{source}: data.workers is {d.workers} with data.collect.sim batched, which flies "
+                          "data.num_envs flights at a time in one process; set data.workers 1")
+    base_collect(cfg, source)  # the collect YAML and its overrides are valid
     if t.model not in list_models():
         raise VitflyError(f"{source}: train.model {t.model!r} unknown; known: {', '.join(list_models())}")
     if t.epochs < 1 or t.finetune_epochs < 1:
@@ -259,7 +267,7 @@ def base_collect(cfg: DaggerConfig, source: str = "dagger config"):
     from vitfly.sim.collect import load_collect_config
 
     overrides = {**cfg.data.collect, "trajectories": cfg.data.expert_trajectories, "seed": cfg.data.seed,
-                 "workers": cfg.data.workers}
+                 "workers": cfg.data.workers, "num_envs": cfg.data.num_envs}
     try:
         return load_collect_config(cfg.data.collect_config, overrides)
     except VitflyError as err:
@@ -273,7 +281,18 @@ def eval_stage(cfg: DaggerConfig):
     # the students fly their evaluation with the physics back end their training flights used
     return EvalStage(env=list(e.env), preset=e.preset, speeds=list(e.speeds), trials=e.trials, seed=e.seed,
                      num_envs=e.num_envs, workers=e.workers, threads=e.threads, backend=e.backend,
-                     timeout_s=e.timeout_s, device=e.device, physics=base_collect(cfg).physics)
+                     timeout_s=e.timeout_s, device=e.device, physics=base_collect(cfg).physics,
+                     **{name: getattr(e, name) for name in SIM_FIELDS})
+
+
+def evaluate_key(cfg: DaggerConfig, paths: bool = False) -> dict:
+    """The evaluation settings that decide its trials (``paths``: of the repeats, which fly the numpy engine):
+    the engine's fields only where the sweeps fly the batched one, so runs made before it existed resume."""
+    key = dataclasses.asdict(cfg.evaluate)
+    if paths or cfg.evaluate.sim == "numpy":
+        for name in SIM_FIELDS:
+            key.pop(name)
+    return key
 
 
 def student_label(round_index: int, baseline: bool) -> str:

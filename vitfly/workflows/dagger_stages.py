@@ -20,7 +20,7 @@ import numpy as np
 from vitfly.atomic import write_text
 from vitfly.errors import VitflyError
 from vitfly.eval.fingerprint import digest
-from vitfly.workflows.dagger_config import DaggerConfig, base_collect
+from vitfly.workflows.dagger_config import DaggerConfig, base_collect, evaluate_key
 from vitfly.zoo.pretrained import is_pretrained_spec
 
 DAGGER_DATA = "data/dagger.h5"
@@ -112,10 +112,10 @@ def plan_stages(cfg: DaggerConfig) -> list[Stage]:
                 "init": fp.get(f"r{r - 1}.bc-train", fp["r0.train"])})
         students = [fp[f"r{r}.train"]] + ([fp[f"r{r}.bc-train"]] if r and cfg.baseline else [])
         add(f"r{r}.evaluate", "evaluate", r, {
-            "evaluate": dataclasses.asdict(cfg.evaluate), "students": students})
+            "evaluate": evaluate_key(cfg), "students": students})
     last = cfg.rounds[-1]
     finals = [fp[f"r{last}.train"]] + ([fp[f"r{last}.bc-train"]] if last and cfg.baseline else [])
-    add("paths", "paths", None, {"paths": dataclasses.asdict(cfg.paths), "evaluate": dataclasses.asdict(cfg.evaluate),
+    add("paths", "paths", None, {"paths": dataclasses.asdict(cfg.paths), "evaluate": evaluate_key(cfg, paths=True),
                                  "students": finals})
     add("report", "report", None, {})
     return stages

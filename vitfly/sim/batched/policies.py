@@ -1,5 +1,5 @@
-"""Policies for the batched engine: the expert and straight flight as tensor code, and an adapter for
-any numpy policy of :mod:`vitfly.sim.rollout` (learned policies, the mixture).
+"""Policies for the batched engine: the expert, straight flight and DAgger's mixture as tensor code, and an
+adapter for any other numpy policy of :mod:`vitfly.sim.rollout`.
 
 A batched policy has ``batched = True``, ``needs_depth``, ``reset(num_envs)`` and
 ``__call__(obs: BatchedObservation)`` returning world-frame velocity commands (E, 3) m/s as a tensor on
@@ -18,7 +18,7 @@ import torch
 from vitfly.sim.batched.expert import blocked_lines, expert_commands, obstacles_ahead
 from vitfly.sim.batched.scenes import SceneBatch
 from vitfly.sim.expert import ExpertConfig
-from vitfly.sim.policies import ExpertPolicy, StraightPolicy
+from vitfly.sim.policies import ExpertPolicy, MixturePolicy, StraightPolicy
 from vitfly.sim.rollout import LabelledCommands, Observation
 
 
@@ -28,7 +28,8 @@ class BatchedObservation:
 
     depth (E, H, W) in [0, 1] (zeros where not rendered); desired_speed (E,) m/s; quat (E, 4)
     (w, x, y, z) body-to-world; position (E, 3) m; velocity (E, 3) m/s; active (E,) bool; time_s:
-    seconds since the episodes' start; tick: control tick index; batch: the scenes (privileged).
+    seconds since the episodes' start; tick: control tick index; batch: the scenes (privileged);
+    active_host: ``active`` as a numpy array (None: read ``active``).
     """
 
     depth: torch.Tensor
@@ -40,6 +41,7 @@ class BatchedObservation:
     time_s: float
     tick: int
     batch: SceneBatch
+    active_host: np.ndarray | None = None  # ``active`` on the host, where the engine has it without waiting
 
 
 class BatchedExpert:
@@ -74,6 +76,43 @@ class BatchedStraight:
         return out
 
 
+class BatchedMixture:
+    """A :class:`~vitfly.sim.policies.MixturePolicy` in the batched engine: the expert and the student as tensor
+    code (their batched twins), so the depth images never leave the engine's device. Which envs fly the
+    expert is the mixture's own choice (``MixturePolicy.choose``: its draws and counters, on the host, from the
+    tick's host copy of ``active``): the same flights and counts as on the numpy engine.
+    """
+
+    batched = True
+
+    def __init__(self, mixture: MixturePolicy, compile: bool = False):
+        self.mixture = mixture
+        self.expert = as_batched_policy(mixture.expert, compile)
+        self.student = None if mixture.student is None else as_batched_policy(mixture.student, compile)
+        self.needs_depth = mixture.needs_depth
+
+    def reset(self, num_envs: int) -> None:
+        self.mixture.reset(num_envs)  # the generators and counters (and the numpy policies the twins share)
+        self.expert.reset(num_envs)
+        if self.student is not None:
+            self.student.reset(num_envs)
+
+    def __call__(self, obs: BatchedObservation):
+        label = _commands_only(self.expert(obs))
+        student = label if self.student is None else _commands_only(self.student(obs)).to(label.dtype)
+        flies = torch.from_numpy(self.mixture.choose(obs.active.cpu().numpy() if obs.active_host is None
+                                                     else obs.active_host))
+        if label.device.type == "cuda":  # pinned, the copy joins the stream: the host does not wait for the card
+            flies = flies.pin_memory()
+        flies = flies.to(label.device, non_blocking=True)
+        return torch.where(flies[:, None], label, student), label
+
+
+def _commands_only(out) -> torch.Tensor:
+    """A batched policy's commands, without the labels it may add."""
+    return out[0] if isinstance(out, tuple) else out
+
+
 class NumpyPolicy:
     """Runs a numpy policy (:class:`vitfly.sim.rollout.Policy`) in the batched engine: the observation
     goes to the host as an :class:`~vitfly.sim.rollout.Observation` (depth float32, as the numpy engine
@@ -102,7 +141,7 @@ class NumpyPolicy:
             position=obs.position.detach().cpu().double().numpy(),
             velocity=obs.velocity.detach().cpu().double().numpy(),
             obstacles=self._obstacles,
-            active=obs.active.cpu().numpy(),
+            active=obs.active.cpu().numpy() if obs.active_host is None else obs.active_host,
             time=np.full(n, obs.time_s),
             tick=obs.tick,
             scenes=scenes,
@@ -121,14 +160,16 @@ def _compiled_expert_kernels() -> dict:
 
 
 def as_batched_policy(policy, compile: bool = False):
-    """``policy`` for the batched engine: batched policies as they are, the numpy expert and straight
-    flight as their batched twins (same commands), a policy's own ``batched_twin()`` where it gives one
+    """``policy`` for the batched engine: batched policies as they are, the numpy expert, straight flight
+    and the mixture as their batched twins (same commands), a policy's own ``batched_twin()`` where it gives one
     (e.g. ``vitfly.eval.learned_policy.LearnedPolicy``), any other policy through :class:`NumpyPolicy`.
     ``compile``: the expert's line test and obstacle selection through ``torch.compile``."""
     if compile and type(policy) in (ExpertPolicy, BatchedExpert):
         return BatchedExpert(policy.config, **_compiled_expert_kernels())
     if getattr(policy, "batched", False):
         return policy
+    if type(policy) is MixturePolicy:
+        return BatchedMixture(policy, compile)
     twin = getattr(policy, "batched_twin", None)  # a policy's own tensor path (a learned policy's network)
     if twin is not None and (batched := twin()) is not None:
         return batched

@@ -193,6 +193,7 @@ def run_batched(
     results: list[EpisodeResult | None] = [None] * n
     policy.reset(n)
     active = torch.ones(n, dtype=torch.bool, device=like["device"])
+    active_host = np.ones(n, dtype=bool)  # the same, kept from each tick's end flags (no extra wait)
     tick, time_s = 0, 0.0
     while True:
         # 1. observe the active envs (log the tick's start state), 2. one batched policy call
@@ -206,7 +207,8 @@ def run_batched(
             depth = torch.where(active[:, None, None], image, depth)
         if cfg.record_depth:
             log.frames.append(depth.to(torch.float32))
-        obs = BatchedObservation(depth, speed, state.quat, state.position, state.velocity, active, time_s, tick, batch)
+        obs = BatchedObservation(depth, speed, state.quat, state.position, state.velocity, active, time_s, tick, batch,
+                                 active_host.copy())
         commands, labels = _commands(policy(obs), n, like)
         if labels is not None:
             log.labels = True
@@ -231,6 +233,7 @@ def run_batched(
         if flags[0]:
             raise ValueError(f"policy returned non-finite commands at tick {tick}")
         for i in np.flatnonzero(flags[1:].numpy()).tolist():
+            active_host[i] = False
             results[i] = _finish(i, tick + 1, scenes[i], float(speeds[i]), log, dt, track)
             if on_episode_end is not None:
                 on_episode_end(i, results[i])
