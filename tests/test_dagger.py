@@ -432,3 +432,16 @@ def test_the_command_line_flies_every_flight_on_the_batched_engine(tiny_run, tmp
     capsys.readouterr()
     assert main(common) == 2  # the numpy engine over flights the batched one made
     assert "round 0" in capsys.readouterr().err
+    # a preset whose expert flights take worker processes (the paper's 8) flies them in this one instead
+    import argparse
+
+    from vitfly.commands import dagger as command
+
+    parser = argparse.ArgumentParser()
+    command.add_arguments(parser)
+    args = parser.parse_args(["--config", str(CONFIG), "--preset", "paper", "--sim", "batched", "--sim-dtype",
+                              "float32"])
+    paper = load_dagger_config(CONFIG, "paper", command.config_overrides(args))
+    assert (paper.data.workers, paper.evaluate.sim, paper.evaluate.sim_dtype) == (1, "batched", "float32")
+    assert base_collect(paper).engine.dtype == "float32"
+    assert load_dagger_config(CONFIG, "paper").data.workers == 8

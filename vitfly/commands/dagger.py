@@ -18,22 +18,31 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--rounds", type=int, help="DAgger rounds after round 0 (overrides schedule.rounds)")
     parser.add_argument("--threads", type=int,
                         help="torch threads for training, the students' flights and the evaluation (0: all cores)")
-    add_engine_arguments(parser, "every flight (the rounds' collections and the sweeps; the paths fly numpy)")
+    add_engine_arguments(parser, "every flight (the rounds' collections, in one process: batched sets data.workers "
+                         "1; the sweeps; the paths fly numpy)")
     parser.add_argument("--stop-after", metavar="STAGE",
                         help=f"stop after this stage ({STAGE_NAMES_HELP}); rerun without it to go on")
     parser.add_argument("--no-progress", action="store_true", help="no progress bars")
 
 
-def run(args: argparse.Namespace) -> int:
+def config_overrides(args: argparse.Namespace) -> dict:
+    """What the flags set over the YAML and its preset."""
     from vitfly.commands.engine_flags import engine_overrides
-    from vitfly.workflows.dagger import run_dagger
-    from vitfly.workflows.dagger_config import load_dagger_config
 
     engine = engine_overrides(args)  # one engine for the collections and the sweeps
     overrides = {"out": args.out, "threads": args.threads, "train": {"model": args.model},
                  "schedule": {"rounds": args.rounds}, "data": {"collect": engine}, "evaluate": dict(engine)}
+    if engine.get("sim") == "batched":  # data.workers are the numpy engine's processes; batched flies in this one
+        overrides["data"]["workers"] = 1
     if args.threads:
         overrides["evaluate"]["threads"] = args.threads
-    cfg = load_dagger_config(args.config, args.preset, overrides)
+    return overrides
+
+
+def run(args: argparse.Namespace) -> int:
+    from vitfly.workflows.dagger import run_dagger
+    from vitfly.workflows.dagger_config import load_dagger_config
+
+    cfg = load_dagger_config(args.config, args.preset, config_overrides(args))
     run_dagger(cfg, args.stop_after, progress=not args.no_progress)
     return 0
