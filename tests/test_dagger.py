@@ -397,8 +397,8 @@ def test_a_round_with_a_student_flies_alike_on_the_batched_engine(tmp_path):
     """A round that mixes a student (the shipped ConvNet) with the expert, on the batched engine in float64 on the
     CPU: the numpy engine's flights, labels and flown commands, the engine stored with the data."""
     mixed = {"schedule": {"beta0": 0.5}, "train": {"init_checkpoint": "pretrained:convnet"}}
-    numpy_cfg = tiny(tmp_path / "numpy", **mixed)
-    batched_cfg = tiny(tmp_path / "batched", **mixed, data={"collect": {"sim": "batched"}})
+    numpy_cfg = tiny(tmp_path / "numpy", **mixed, data={"expert_trajectories": 2})
+    batched_cfg = tiny(tmp_path / "batched", **mixed, data={"expert_trajectories": 2, "collect": {"sim": "batched"}})
     for cfg in (numpy_cfg, batched_cfg):
         run_dagger(cfg, stop_after="r0.collect", progress=False)
     ref, ref_config = flights(tmp_path / "numpy/data/dagger.h5")
