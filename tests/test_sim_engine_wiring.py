@@ -2,6 +2,7 @@
 data as the numpy engine in float64 on the CPU, the engine in every record and dataset and in the keys,
 and one line for a bad setting."""
 
+import dataclasses
 import json
 
 import h5py
@@ -208,7 +209,7 @@ def test_workflows_pass_the_engine_through(tmp_path):
     from pathlib import Path
 
     from vitfly.errors import VitflyError
-    from vitfly.workflows.dagger_config import base_collect, load_dagger_config
+    from vitfly.workflows.dagger_config import SIM_FIELDS, base_collect, evaluate_key, load_dagger_config
     from vitfly.workflows.pipeline import EvalStage, sweep_config
     from vitfly.workflows.reproduce_config import ReproduceConfig, ReproduceEvaluate, eval_stage
 
@@ -221,6 +222,11 @@ def test_workflows_pass_the_engine_through(tmp_path):
     dagger = repo / "configs/dagger.yaml"
     cfg = load_dagger_config(dagger, "tiny", {"out": str(tmp_path), "data": data})
     assert (base_collect(cfg).engine, base_collect(cfg).num_envs) == (SimEngine("batched"), cfg.data.num_envs)
+    # the stages' keys name the sweeps' engine only where it is batched: runs keyed before it existed resume
+    numpy_key = evaluate_key(cfg)
+    assert not set(SIM_FIELDS) & set(numpy_key) and "device" in numpy_key
+    batched = dataclasses.replace(cfg, evaluate=dataclasses.replace(cfg.evaluate, sim="batched"))
+    assert evaluate_key(batched)["sim"] == "batched" and "sim" not in evaluate_key(batched, paths=True)
     with pytest.raises(VitflyError, match="data.workers is 2 with data.collect.sim batched"):
         load_dagger_config(dagger, "tiny", {"out": str(tmp_path), "data": {**data, "workers": 2}})
     with pytest.raises(VitflyError, match="data.collect.num_envs is set by the workflow; use data.num_envs"):
