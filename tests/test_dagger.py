@@ -445,3 +445,21 @@ def test_the_command_line_flies_every_flight_on_the_batched_engine(tiny_run, tmp
     assert (paper.data.workers, paper.evaluate.sim, paper.evaluate.sim_dtype) == (1, "batched", "float32")
     assert base_collect(paper).engine.dtype == "float32"
     assert load_dagger_config(CONFIG, "paper").data.workers == 8
+
+
+@pytest.mark.slow
+def test_the_round_benchmark_flies_both_engines_alike(tmp_path, capsys):
+    # benchmarks/dagger_round.py, two flights: float64 on the CPU, both engines write the same frames and the
+    # expert flies the same share of ticks
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location("dagger_round", REPO / "benchmarks" / "dagger_round.py")
+    bench = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(bench)
+    out = tmp_path / "rows.json"
+    assert bench.main(["--flights", "2", "--settings", "numpy", "batched", "--json", str(out)]) == 0
+    numpy_row, batched_row = json.loads(out.read_text())
+    assert [numpy_row["setting"], batched_row["setting"]] == ["numpy", "batched"]
+    assert numpy_row["frames"] == batched_row["frames"] > 0
+    assert numpy_row["expert_tick_share"] == batched_row["expert_tick_share"]
+    assert "| batched |" in capsys.readouterr().out
