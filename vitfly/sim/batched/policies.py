@@ -43,6 +43,10 @@ class BatchedObservation:
     batch: SceneBatch
     active_host: np.ndarray | None = None  # ``active`` on the host, where the engine has it without waiting
 
+    def active_on_host(self) -> np.ndarray:
+        """``active`` as a numpy array: the engine's host copy, else read from the device."""
+        return self.active.cpu().numpy() if self.active_host is None else self.active_host
+
 
 class BatchedExpert:
     """The privileged expert (:func:`vitfly.sim.batched.expert.expert_commands`) for every env."""
@@ -100,8 +104,7 @@ class BatchedMixture:
     def __call__(self, obs: BatchedObservation):
         label = _commands_only(self.expert(obs))
         student = label if self.student is None else _commands_only(self.student(obs)).to(label.dtype)
-        flies = torch.from_numpy(self.mixture.choose(obs.active.cpu().numpy() if obs.active_host is None
-                                                     else obs.active_host))
+        flies = torch.from_numpy(self.mixture.choose(obs.active_on_host()))
         if label.device.type == "cuda":  # pinned, the copy joins the stream: the host does not wait for the card
             flies = flies.pin_memory()
         flies = flies.to(label.device, non_blocking=True)
@@ -141,7 +144,7 @@ class NumpyPolicy:
             position=obs.position.detach().cpu().double().numpy(),
             velocity=obs.velocity.detach().cpu().double().numpy(),
             obstacles=self._obstacles,
-            active=obs.active.cpu().numpy() if obs.active_host is None else obs.active_host,
+            active=obs.active_on_host(),
             time=np.full(n, obs.time_s),
             tick=obs.tick,
             scenes=scenes,
