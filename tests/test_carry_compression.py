@@ -2,18 +2,13 @@
 
 from __future__ import annotations
 
-import importlib.util
-from pathlib import Path
-
 import numpy as np
 import pytest
 import torch
+from helpers import load_benchmark
 from safetensors.torch import save_file
 
-REPO = Path(__file__).resolve().parents[1]
-spec = importlib.util.spec_from_file_location("carry_compression", REPO / "benchmarks" / "carry_compression.py")
-bench = importlib.util.module_from_spec(spec)
-spec.loader.exec_module(bench)
+bench = load_benchmark("carry_compression")
 
 
 def test_byte_planes_put_each_values_bytes_in_their_plane():

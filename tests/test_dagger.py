@@ -12,6 +12,7 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 import torch
+from helpers import load_benchmark
 
 from vitfly.datamodules.schema import (
     TrajectoryRecord,
@@ -451,11 +452,7 @@ def test_the_command_line_flies_every_flight_on_the_batched_engine(tiny_run, tmp
 def test_the_round_benchmark_flies_both_engines_alike(tmp_path, capsys):
     # benchmarks/dagger_round.py, two flights: float64 on the CPU, both engines write the same frames and the
     # expert flies the same share of ticks
-    import importlib.util
-
-    spec = importlib.util.spec_from_file_location("dagger_round", REPO / "benchmarks" / "dagger_round.py")
-    bench = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(bench)
+    bench = load_benchmark("dagger_round")
     out = tmp_path / "rows.json"
     assert bench.main(["--flights", "2", "--settings", "numpy", "batched", "--json", str(out)]) == 0
     numpy_row, batched_row = json.loads(out.read_text())

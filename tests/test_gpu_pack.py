@@ -9,24 +9,14 @@ local sweep directory as ``vitfly evaluate --merge`` does.
 
 from __future__ import annotations
 
-import importlib
 import io
 import json
 import os
-import sys
 import tarfile
 from pathlib import Path
 
 import pytest
-
-REPO = Path(__file__).resolve().parents[1]
-
-
-def load_script(name: str):
-    """A module of scripts/, imported as the scripts import each other."""
-    if str(REPO) not in sys.path:
-        sys.path.insert(0, str(REPO))
-    return importlib.import_module(f"scripts.{name}")
+from helpers import load_script
 
 
 def tree(root: Path) -> dict[str, bytes]:

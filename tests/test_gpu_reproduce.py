@@ -13,7 +13,6 @@ from __future__ import annotations
 
 import csv
 import hashlib
-import importlib
 import io
 import json
 import os
@@ -30,6 +29,7 @@ import h5py
 import pytest
 import torch
 import yaml
+from helpers import load_script
 from test_run_lock import Holder
 
 from vitfly.datamodules.provenance import dataset_fingerprint
@@ -40,13 +40,6 @@ from vitfly.workflows.reproduce_report import _training_table
 from vitfly.zoo import load_network
 
 REPO = Path(__file__).resolve().parents[1]
-
-
-def load_script(name: str):
-    """A module of scripts/, imported as the scripts import each other."""
-    if str(REPO) not in sys.path:
-        sys.path.insert(0, str(REPO))
-    return importlib.import_module(f"scripts.{name}")
 
 
 @pytest.fixture(scope="module")

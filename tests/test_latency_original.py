@@ -11,14 +11,13 @@ then what the previous call returned.
 
 from __future__ import annotations
 
-import importlib.util
 import json
 import sys
-from pathlib import Path
 
 import numpy as np
 import pytest
 import torch
+from helpers import load_benchmark
 
 from vitfly.errors import VitflyError
 from vitfly.eval.latency import benchmark_original, prepare_original
@@ -118,16 +117,8 @@ def test_bad_checkouts_fail_with_one_line(tmp_path, stand_in):
         load_original_models(stand_in)
 
 
-def _benchmark_script():
-    path = Path(__file__).resolve().parents[1] / "benchmarks" / "latency.py"
-    spec = importlib.util.spec_from_file_location("benchmark_latency_script", path)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
-
-
 def test_benchmark_script_original_column_only_with_a_checkout(stand_in, tmp_path, capsys):
-    script = _benchmark_script()
+    script = load_benchmark("latency")
     out = tmp_path / "lat.json"
     argv = ["--models", "convnet", "--backends", "eager", "--iters", "5", "--warmup", "1", "--repeats", "2"]
     script.main([*argv, "--original-repo", str(stand_in), "--out", str(out)])

@@ -4,6 +4,7 @@ import math
 
 import numpy as np
 import pytest
+from helpers import load_script
 from scipy.stats import beta
 
 from vitfly.errors import VitflyError
@@ -234,13 +235,12 @@ def test_paired_findings_figure_draws_each_claim_where_its_interval_lies(tmp_pat
 
 
 def test_paired_figure_script_draws_a_published_outcomes_file(tmp_path, capsys, monkeypatch):
-    import importlib
     from pathlib import Path
 
     from vitfly.eval.records import write_outcomes
 
     monkeypatch.syspath_prepend(str(Path(__file__).resolve().parents[1]))
-    script = importlib.import_module("scripts.paired_figure")
+    script = load_script("paired_figure")
     recs = (flights("a", lambda k: 0) + flights("b", lambda k: 1) + flights("a", lambda k: 0, speed=3.0)
             + flights("b", lambda k: k % 2, speed=3.0))
     write_outcomes(tmp_path / "outcomes.jsonl.gz", recs)
@@ -260,7 +260,6 @@ def test_paired_figure_script_draws_a_published_outcomes_file(tmp_path, capsys, 
 
 
 def test_a_study_results_json_gives_back_its_paired_findings(tmp_path, capsys, monkeypatch):
-    import importlib
     import json
     from pathlib import Path
 
@@ -276,7 +275,7 @@ def test_a_study_results_json_gives_back_its_paired_findings(tmp_path, capsys, m
         PairedDifference.from_dict({"metric": "success"}, "results.json: comparison 0")
 
     monkeypatch.syspath_prepend(str(Path(__file__).resolve().parents[1]))
-    script = importlib.import_module("scripts.paired_figure")
+    script = load_script("paired_figure")
     (tmp_path / "results.json").write_text(json.dumps(kept))
     assert script.main([str(tmp_path / "results.json"), "--out", str(tmp_path / "paired.png")]) == 0
     assert (tmp_path / "paired.png").stat().st_size > 10_000

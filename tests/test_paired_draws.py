@@ -2,6 +2,7 @@
 
 import numpy as np
 import pytest
+from helpers import load_script
 from scipy.stats import bootstrap
 
 from vitfly.eval.findings import draw_label, label, split_draw
@@ -150,11 +151,10 @@ def test_borrowing_against_draws_matches_the_mixture_by_hand():
 
 
 def test_calibration_script_shows_one_draw_deciding_between_equal_networks(capsys, monkeypatch):
-    import importlib
     from pathlib import Path
 
     monkeypatch.syspath_prepend(str(Path(__file__).resolve().parents[1]))
-    calibration = importlib.import_module("scripts.paired_calibration")
+    calibration = load_script("paired_calibration")
     assert calibration.main(["--draws", "1x1", "4x4", "--studies", "60", "--resamples", "500",
                              "--draw-sd-points", "25"]) == 0
     rows = [line.split("|") for line in capsys.readouterr().out.splitlines() if line.startswith("| 1 vs 1")

@@ -5,13 +5,12 @@ from __future__ import annotations
 
 import csv
 import dataclasses
-import importlib.util
 import json
 import math
-from pathlib import Path
 
 import numpy as np
 import pytest
+from helpers import load_benchmark, load_script
 
 from vitfly.cli import main
 from vitfly.errors import VitflyError
@@ -21,7 +20,6 @@ from vitfly.eval.explain.study import map_finding, paired_map_difference, ticks_
 from vitfly.eval.paired import claim_side, claims_verdict
 from vitfly.sim.scenes import Scene
 
-REPO = Path(__file__).resolve().parents[1]
 CYLINDER = np.array([10.0, 0.0, 0.0, 8.0, 0.5])  # x, y, z_bottom, z_top, radius: near face at x = 9.5
 
 
@@ -137,9 +135,7 @@ def test_explain_trials_pairs_every_model_with_the_first(tmp_path, capsys, one_t
 
 
 def test_onboard_budget_script_on_a_tiny_setting(tmp_path, capsys, one_torch_thread):
-    spec = importlib.util.spec_from_file_location("onboard_budget", REPO / "benchmarks" / "onboard_budget.py")
-    bench = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(bench)
+    bench = load_benchmark("onboard_budget")
     out = tmp_path / "budget.json"
     assert bench.main(["--models", "convnet", "--ticks", "3", "--warmup", "1", "--frames", "2",
                        "--out", str(out)]) == 0  # fmt: skip
@@ -188,13 +184,6 @@ def test_explain_bad_sensor_field_is_one_line(tmp_path, capsys):
     assert len(err) == 1 and "sensor.baseline_m" in err[0] and not out.exists()
 
 
-def _script(name):
-    spec = importlib.util.spec_from_file_location(name, REPO / "scripts" / f"{name}.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
-
-
 def test_map_finding_decides_the_claims_of_both_depths_together(tmp_path, capsys):
     def paired(path, sides):
         comparisons = [{"a": "ViT+LSTM", "b": "ConvNet", "metric": m, "map_kind": "command", "diff": 0.1,
@@ -206,13 +195,14 @@ def test_map_finding_decides_the_claims_of_both_depths_together(tmp_path, capsys
     exact = paired(tmp_path / "e.json", [(-0.1, 0.2, "undecided"), (0.1, 0.5, "for")])
     d435 = paired(tmp_path / "d.json", [(0.05, 0.1, "for"), (-0.2, 0.3, "undecided")])
     out = tmp_path / "finding.json"
-    assert _script("map_finding").main(["--paired", "exact", exact, "--paired", "d435", d435, "--out", str(out)]) == 0
+    map_finding = load_script("map_finding")
+    assert map_finding.main(["--paired", "exact", exact, "--paired", "d435", d435, "--out", str(out)]) == 0
     assert json.loads(out.read_text())["verdict"] == "partly"  # 2 of 4 for, none against
     assert "verdict: partly (2 of 4 claims decided for, 0 against)" in capsys.readouterr().out
 
 
 def test_avoidance_onset_script_names_a_missing_sweep(tmp_path, capsys):
-    assert _script("avoidance_onset").main(["--sweep", "exact", str(tmp_path / "nope")]) == 2
+    assert load_script("avoidance_onset").main(["--sweep", "exact", str(tmp_path / "nope")]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "nope/trials.jsonl: missing" in err[0]
 

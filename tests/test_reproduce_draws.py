@@ -9,6 +9,7 @@ from pathlib import Path
 
 import pytest
 import yaml
+from helpers import load_script
 
 from vitfly.errors import VitflyError
 from vitfly.workflows.reproduce import evaluation_plan
@@ -96,11 +97,10 @@ def test_a_tiny_study_with_draws_trains_flies_and_reports_them(tmp_path, monkeyp
 
 def test_gpu_slots_know_draws_as_runs(tmp_path, monkeypatch):
     import argparse
-    import importlib
 
     monkeypatch.chdir(REPO)
     monkeypatch.syspath_prepend(str(REPO))  # the scripts import each other as scripts.<name>
-    gpu, slots = importlib.import_module("scripts.gpu"), importlib.import_module("scripts.gpu_reproduce")
+    gpu, slots = load_script("gpu"), load_script("gpu_reproduce")
     path = config(tmp_path, {"convnet-nostate": [5]})
     where = {"config": str(path), "preset": "tiny", "run_dir": str(tmp_path / "run"), "data": str(tmp_path / "d.h5")}
     cfg = slots.load_cfg(argparse.Namespace(**where))

@@ -1,23 +1,17 @@
 """benchmarks/sim_agreement.py's pairing and counting, on hand-made records (no flight), and benchmarks/sim_scale.py
 end to end (slow)."""
 
-import importlib.util
 import json
-from pathlib import Path
 
 import pytest
+from helpers import load_benchmark
 
 from vitfly.eval.records import TrialRecord
-
-REPO = Path(__file__).resolve().parents[1]
 
 
 @pytest.fixture(scope="module")
 def bench():
-    spec = importlib.util.spec_from_file_location("sim_agreement", REPO / "benchmarks" / "sim_agreement.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+    return load_benchmark("sim_agreement")
 
 
 def rec(label, trial, success=True, goal=True, collisions=0, speed=3.0):
@@ -53,9 +47,7 @@ def test_agreement_counts_outcomes_pair_by_pair(bench):
 def test_sim_scale_flies_the_same_trials_with_both_engines(tmp_path, monkeypatch):
     # benchmarks/sim_scale.py end to end, tiny and eager: in float64 both engines fly the same trials (exact
     # engines, the same scenes; 3 s each) and collect the same frames (no --warm: eager, a rerun adds nothing)
-    spec = importlib.util.spec_from_file_location("sim_scale", REPO / "benchmarks" / "sim_scale.py")
-    scale = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(scale)
+    scale = load_benchmark("sim_scale")
     out = tmp_path / "scale.json"
     monkeypatch.setattr("sys.argv", ["sim_scale", "--eager", "--dtype", "float64", "--trials", "3",
                                      "--numpy-trials", "3", "--num-envs", "3", "--flights", "2",
