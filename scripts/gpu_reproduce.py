@@ -538,16 +538,15 @@ def checked_runs(tmp: Path, src: Path, cfg, local: str) -> list[Path]:
     """The returned run folders, every one checked (label, data hash against ``local``, no live training here)
     before any is placed."""
     from scripts.gpu_slots import returned_hash
-    from vitfly.training.run_lock import training_now
+    from vitfly.training.run_lock import training_now, who_holds
 
     runs = sorted(p for p in tmp.iterdir() if p.is_dir())
     for run in runs:
         label = parse_label(run.name)
         holder = training_now(run_dir(cfg, run.name))
         if holder is not None:  # placing would pull the folder from under that process
-            who = f"pid {holder['pid']}" if "pid" in holder else "another process"
-            raise SystemExit(f"{src}: {run.name} is training here now ({who}); stop it (it resumes from its last "
-                             "checkpoint) or let it end, then unpack again; nothing unpacked")
+            raise SystemExit(f"{src}: {run.name} is training here now ({who_holds(holder)}); stop it (it resumes "
+                             "from its last checkpoint) or let it end, then unpack again; nothing unpacked")
         if returned_hash(run) != local:
             raise SystemExit(f"{src}: {run.name} was trained on dataset_hash {returned_hash(run)}; the local "
                              f"{cfg.data} has {local}; nothing unpacked")
@@ -583,7 +582,7 @@ def run_states(cfg) -> list:
     from scripts.gpu_carry import caught_up
     from scripts.gpu_plan import RunState
     from scripts.gpu_slots import MARKER, epochs_done, tree_bytes
-    from vitfly.training.run_lock import training_now
+    from vitfly.training.run_lock import training_now, who_holds
     from vitfly.workflows.reproduce_config import runs, train_stage
 
     rows = []
@@ -591,8 +590,7 @@ def run_states(cfg) -> list:
         d = cfg.train_dir(*run)
         n = train_stage(cfg, run.model, run.use_state, seed=run.seed).max_epochs
         holder = training_now(d)  # a process here holds the run's lock (vitfly.training.run_lock)
-        now = "" if holder is None else ", training here now" + (
-            f" (pid {holder['pid']}, since {holder['since']})" if "pid" in holder else "")
+        now = "" if holder is None else f", training here now ({who_holds(holder)})"
         if (d / "done.json").exists():
             on = json.loads((d / "done.json").read_text()).get("trained_on")
             rows.append(RunState(run, "done", "done" + (f" ({on['epochs']} epochs on {on['device']})" if on else ""),

@@ -86,8 +86,8 @@ def test_runs_trained_elsewhere_come_back_as_done(tmp_path, data, capsys):
     shutil.rmtree(trained)
     holder = Holder(trained)  # a training here on the same run: unpacking would pull its folder away
     try:
-        with pytest.raises(SystemExit, match=rf"convnet-nostate is training here now \(pid {holder.proc.pid}\); "
-                           r"stop it .* nothing unpacked"):
+        with pytest.raises(SystemExit, match=rf"convnet-nostate is training here now \(pid {holder.proc.pid} on "
+                           r".*, since .*\); stop it .* nothing unpacked"):
             gpu.main(["unpack", *where, str(out)])
     finally:
         holder.release()
@@ -214,8 +214,8 @@ def test_a_run_stopped_in_one_slot_resumes_in_the_next_exactly(tmp_path, data, t
         busy = capsys.readouterr().out
     finally:
         holder.release()
-    assert (f"convnet-nostate  started here: no epoch ended yet, training here now (pid {holder.proc.pid}, since "
-            in busy)
+    assert re.search(rf"convnet-nostate  started here: no epoch ended yet, training here now \(pid {holder.proc.pid} "
+                     r"on \S+, since [^)]+\)\n", busy)
     assert not re.search(r"starts: .*convnet-nostate", busy)  # so no slot starts it beside that process
     # ViT+LSTM's lean state with fp32 moments and its best epoch in fp16 (the tiny preset flies the best epoch):
     # 3,563,663 x (12 x 0.85, last.* squeezed as planned + 2) + 196,608 bytes = 41.7 MiB, within what the working

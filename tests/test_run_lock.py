@@ -15,7 +15,7 @@ import pytest
 import yaml
 from test_datamodule import write_dataset
 
-from vitfly.training.run_lock import LOCK_NAME, RunBusy, run_lock, training_now
+from vitfly.training.run_lock import LOCK_NAME, RunBusy, run_lock, training_now, who_holds
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -138,3 +138,12 @@ def test_a_second_reproduce_trains_the_runs_the_first_is_not_on(tmp_path, monkey
     run_reproduce(cfg, ["train"], progress=False)  # run again when the other process has ended
     assert (state / "done.json").exists()
     assert "[train] done before: " + str(nostate) in capsys.readouterr().out
+
+
+def test_every_message_names_the_holder_alike():
+    # RunBusy, gpu.py's status and its unpack refusal all say who holds a run with who_holds
+    holder = {"pid": 4242, "host": "lab-3", "since": "2026-11-30 08:00:00"}
+    assert who_holds(holder) == "pid 4242 on lab-3, since 2026-11-30 08:00:00"
+    assert who_holds({"pid": 7}) == "pid 7 on ?"
+    assert who_holds({}) == "another process"  # it holds the lock and has not yet written who it is
+    assert str(RunBusy(Path("runs/x"), holder)).startswith("runs/x: pid 4242 on lab-3, since 2026-11-30 08:00:00, is")

@@ -26,12 +26,20 @@ from vitfly.errors import VitflyError
 LOCK_NAME = "train.lock"
 
 
+def who_holds(holder: dict) -> str:
+    """The holding process as the messages name it: "pid 123 on HOST, since TIME", or "another process" while it
+    has not yet written who it is."""
+    if "pid" not in holder:
+        return "another process"
+    since = f", since {holder['since']}" if "since" in holder else ""
+    return f"pid {holder['pid']} on {holder.get('host', '?')}{since}"
+
+
 class RunBusy(VitflyError):
     """Another live process is training this run folder."""
 
     def __init__(self, run_dir: Path, holder: dict):
-        who = f"pid {holder['pid']} on {holder.get('host', '?')}" if "pid" in holder else "another process"
-        self.who = who + (f", since {holder['since']}" if "since" in holder else "")
+        self.who = who_holds(holder)
         super().__init__(f"{run_dir}: {self.who}, is training this run; wait for it to end (or stop it) and "
                          "run again: it resumes from its last checkpoint")
         self.run_dir = Path(run_dir)
