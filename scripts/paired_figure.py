@@ -12,11 +12,16 @@ report does (``figures/paired_findings.png``), from the numbers the JSON keeps; 
                 convnet-nostate=convnet-nostate,convnet-nostate-s1,convnet-nostate-s2 \
         --out docs/results/paper_budget/ablation_native/state_effect.png
     python scripts/paired_figure.py docs/results/laptop/results.json --out docs/results/laptop/paired_findings.png
+    python scripts/paired_figure.py paper=docs/results/paper_budget/evaluation_native/spheres \
+        shipped=docs/results/shipped_4_6_7 --speeds 4 6 7 --pair paper/convnet shipped/convnet --envs spheres \
+        --draws paper/convnet=paper/convnet,paper/convnet-s1,paper/convnet-s2 shipped/convnet=shipped/convnet \
+        --out /tmp/paper_vs_shipped.png
 """
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import sys
 from pathlib import Path
@@ -39,14 +44,20 @@ def parse_draws(items: list[str]) -> dict[str, list[str]]:
     return draws
 
 
-def read(sources: list[str]):
-    """The records of trial files, outcomes files or sweep folders, merged by key."""
+def read(sources: list[str], speeds: list[float] | None = None):
+    """The records of trial files, outcomes files or sweep folders, merged by key. A source written
+    ``NAME=PATH`` has its policies renamed ``NAME/policy``, so that two sweeps that both flew a "convnet" (the
+    shipped weights and a new training, on the same scenes) pair as two policies. ``speeds``: only those."""
     groups = []
-    for source in map(Path, sources):
-        files = report_files(source) if source.is_dir() else [source]
+    for source in sources:
+        name, sep, path = source.partition("=")
+        path = Path(path if sep else source)
+        files = report_files(path) if path.is_dir() else [path]
         if not files or not all(f.exists() for f in files):
-            raise VitflyError(f"{source}: no trials*.jsonl or outcomes.jsonl.gz there")
-        groups += [read_records(f) for f in files]
+            raise VitflyError(f"{path}: no trials*.jsonl or outcomes.jsonl.gz there")
+        for f in files:
+            records = [r for r in read_records(f) if speeds is None or float(r.speed) in speeds]
+            groups.append([dataclasses.replace(r, policy=f"{name}/{r.policy}") for r in records] if sep else records)
     return merge_records(groups)
 
 
@@ -81,7 +92,9 @@ def study_findings(path: Path) -> list[PairedFinding]:
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
                                 formatter_class=argparse.ArgumentDefaultsHelpFormatter)
-    p.add_argument("records", nargs="+", help="trials*.jsonl, outcomes.jsonl.gz or sweep folders")
+    p.add_argument("records", nargs="+", help="trials*.jsonl, outcomes.jsonl.gz or sweep folders; NAME=PATH names "
+                   "the source's policies NAME/policy")
+    p.add_argument("--speeds", nargs="+", type=float, help="only these speeds (m/s); default every speed flown")
     p.add_argument("--pair", nargs=2, action="append", default=[], metavar=("A", "B"),
                    help="draw A - B (repeat for more pairs); none for a results.json")
     p.add_argument("--draws", nargs="+", default=[], metavar="RUN=LABEL,...",
@@ -99,7 +112,7 @@ def main(argv: list[str] | None = None) -> int:
             written = paired_findings_figure(study_findings(Path(args.records[0])), args.out, args.title)
             print(f"wrote {written}" if written else f"{args.records[0]}: no finding was compared; nothing drawn")
             return 0
-        records = read(args.records)
+        records = read(args.records, args.speeds)
         groups = differences(records, args.pair, args.envs, args.metrics, parse_draws(args.draws))
         flown = {r.policy for r in records}
         missing = sorted({q for pair in args.pair for q in pair} - flown)

@@ -259,6 +259,25 @@ def test_paired_figure_script_draws_a_published_outcomes_file(tmp_path, capsys, 
     assert "no shared trials of c (flown: a, b)" in capsys.readouterr().err and not (tmp_path / "no.png").exists()
 
 
+def test_paired_figure_script_pairs_two_sweeps_that_flew_one_label(tmp_path, capsys):
+    from vitfly.eval.records import write_outcomes
+
+    script = load_script("paired_figure")
+    # both sweeps flew a "convnet" on the same scenes: at 7 m/s the first's 30 trials succeed, the second's fail
+    (tmp_path / "new").mkdir(), (tmp_path / "old").mkdir()
+    write_outcomes(tmp_path / "new" / "outcomes.jsonl.gz",
+                   flights("convnet", lambda k: 0) + flights("convnet", lambda k: 1, speed=3.0))
+    write_outcomes(tmp_path / "old" / "outcomes.jsonl.gz",
+                   flights("convnet", lambda k: 1) + flights("convnet", lambda k: 1, speed=3.0))
+    out = tmp_path / "fig.png"
+    assert script.main([f"new={tmp_path / 'new'}", f"old={tmp_path / 'old'}", "--speeds", "7", "--pair",
+                        "new/convnet", "old/convnet", "--envs", "spheres", "--metrics", "success",
+                        "--out", str(out)]) == 0
+    # 7 m/s only (3 m/s left out, so nothing pooled): 30 discordant pairs, as the 7 m/s line above
+    assert capsys.readouterr().out.splitlines()[:-1] == [
+        "success    new/convnet - old/convnet, spheres, 7 m/s: +100 points [+77, +100], 30 pairs, McNemar p=1.9e-09"]
+
+
 def test_a_study_results_json_gives_back_its_paired_findings(tmp_path, capsys, monkeypatch):
     import json
     from pathlib import Path
