@@ -149,7 +149,10 @@ def test_summary_rows_and_csv(tmp_path):
     assert table[2]["time_in_collision_colliding_std"] == "0.0"  # one colliding trial
     assert float(table[2]["time_in_collision_std"]) == pytest.approx(np.std([0.05, 0, 0], ddof=1), rel=1e-4)
     md = paths["markdown"].read_text()
-    assert "| expert | spheres | 3 | 3 | 67 | 33 |" in md
+    # 2 of 3 with its 95 % Wilson interval, by hand: (p + z²/2n ± z sqrt(p(1-p)/n + z²/4n²)) / (1 + z²/n),
+    # z = 1.96: (0.6667 + 0.6403 ± 0.8334) / 2.2805 = 0.208 to 0.939
+    assert "| expert | spheres | 3 | 3 | 67 (21-94) | 33 |" in md
+    assert "Brackets: the 95 % Wilson interval of the paper's success rate" in md
     assert "success % (paper) | success % (strict)" in md
     assert "success (paper) = no collision" in md and "success (strict) = goal reached and no collision" in md
     assert md.startswith("| policy") and md.count("\n| ") == 4  # 4 rows under the header

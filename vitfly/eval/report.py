@@ -10,11 +10,12 @@ from pathlib import Path
 
 from vitfly.atomic import write_text
 from vitfly.eval.aggregate import AGGREGATED_METRICS, RATE_COLUMNS
+from vitfly.eval.findings import wilson
 
 BASE_COLUMNS = ("policy", "policy_id", "env", "speed", "trials", *RATE_COLUMNS)
 
 # Markdown / console table: (header, column stem or rate column, digits). Success is shown twice,
-# each header naming its definition (TABLE_LEGEND); the paper's comes first.
+# each header naming its definition (TABLE_LEGEND); the paper's comes first, with its 95 % Wilson interval.
 TABLE_COLUMNS: tuple[tuple[str, str, int], ...] = (
     ("success % (paper)", "success_paper_rate", 0),
     ("success % (strict)", "success_strict_rate", 0),
@@ -30,7 +31,9 @@ TABLE_COLUMNS: tuple[tuple[str, str, int], ...] = (
 )
 TABLE_LEGEND = ("success (paper) = no collision, the paper's definition; success (strict) = goal reached and no "
                 "collision. Time in collision = contact time / collisions: (paper) 0 for trials without one, mean "
-                "over all trials, as the paper plots it; (colliding) mean over trials with a collision.")
+                "over all trials, as the paper plots it; (colliding) mean over trials with a collision. "
+                "Brackets: the 95 % Wilson interval of the paper's success rate.")
+INTERVAL_COLUMNS = ("success_paper_rate",)  # rates shown with their interval: the one the study's verdicts use
 
 
 def csv_columns() -> list[str]:
@@ -53,7 +56,10 @@ def summary_csv(rows: Sequence[dict]) -> str:
 def _cell(row: dict, column: str, digits: int) -> str:
     if column.endswith("_rate"):
         v = row[column]
-        return f"{100 * v:.{digits}f}"
+        if column not in INTERVAL_COLUMNS:
+            return f"{100 * v:.{digits}f}"
+        low, high = wilson(round(v * row["trials"]), row["trials"])
+        return f"{100 * v:.{digits}f} ({100 * low:.0f}-{100 * high:.0f})"
     mean, std = row[f"{column}_mean"], row[f"{column}_std"]
     if not math.isfinite(mean):
         return "-"
