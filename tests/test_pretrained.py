@@ -163,3 +163,40 @@ def test_published_weights_fly_with_their_training_sensor(tmp_path):
     assert run.returncode == 0, run.stderr
     (rec,) = records.read_sweep(out)
     np.testing.assert_allclose(np.diff(rec.path_arrays()["time"]), 1 / 15, atol=1e-3)  # one tick = 1 / 15 s
+
+
+def test_publish_weights_takes_closed_loop_numbers_only_from_trials_of_those_weights(tmp_path, capsys):
+    from vitfly.cli import main
+
+    _, ckpt = random_checkpoint(tmp_path, "convnet")
+    (tmp_path / "other").mkdir()
+    _, other = random_checkpoint(tmp_path / "other", "convnet", seed=1)
+    sweeps = {env: tmp_path / "eval" / env for env in ("spheres", "trees")}
+    for env, out in sweeps.items():
+        assert main(["evaluate", "--policy", str(ckpt), "--name", "mine", "--env", env, "--speeds", "3", "5",
+                     "--trials", "2", "--out", str(out), "--no-gif", "--no-plots", "--no-progress",
+                     "--timeout", "2"]) == 0
+    weights = tmp_path / "w"
+    publish = ["publish-weights", str(ckpt), "--name", "convnet_test", "--weights-dir", str(weights),
+               "--closed-loop-from", *map(str, sweeps.values()), "--closed-loop-policy", "mine"]
+    assert main(publish) == 0
+    numbers = read_manifest(weights)["models"]["convnet_test"]["closed_loop"]
+    assert {k: numbers[k] for k in ("eval_seed", "scene_preset", "success", "backend")} == {
+        "eval_seed": 0, "scene_preset": "medium", "success": "no collision", "backend": "eager"}
+    for env, out in sweeps.items():  # each cell by hand from the trials
+        recs = records.read_sweep(out)
+        for speed in (3.0, 5.0):
+            cell = [r for r in recs if r.speed == speed]
+            assert numbers[env][f"{speed:g}"] == {
+                "success": sum(r.success_paper for r in cell) / 2, "trials": 2,
+                "success_strict": sum(r.success_strict for r in cell) / 2,
+                "collisions_per_trial": pytest.approx(sum(r.metrics["collisions"] for r in cell) / 2)}
+    # trials of other weights under the label, or no trials of it: one line, nothing written
+    capsys.readouterr()
+    refused = tmp_path / "refused"
+    other_weights = ["publish-weights", str(other), "--name", "convnet_test", "--weights-dir", str(refused),
+                     "--closed-loop-from", str(sweeps["spheres"]), "--closed-loop-policy", "mine"]
+    assert main(other_weights) == 2
+    assert "was flown with other weights" in capsys.readouterr().err and not refused.exists()
+    assert main([*other_weights[:-1], "nobody"]) == 2
+    assert "no trials of policy 'nobody'" in capsys.readouterr().err and not refused.exists()

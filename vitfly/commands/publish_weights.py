@@ -17,6 +17,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--dataset", help="provenance: the training dataset (its hash and frame count are recorded)")
     parser.add_argument("--field", action="append", default=[], metavar="KEY=JSON",
                         help="another manifest field, value as JSON (repeatable), e.g. notes='\"lr 1e-4\"'")
+    parser.add_argument("--closed-loop-from", nargs="+", metavar="DIR",
+                        help="evaluation folders (vitfly evaluate / reproduce: trials or published outcomes) whose "
+                             "trials of these weights give the manifest's closed_loop numbers; every trial must "
+                             "have been flown with this checkpoint's weights")
+    parser.add_argument("--closed-loop-policy", metavar="LABEL",
+                        help="the label the weights were flown under in those folders (default: --name)")
 
 
 def parse_fields(items: list[str]) -> dict:
@@ -42,6 +48,14 @@ def run(args: argparse.Namespace) -> int:
         from vitfly.datamodules.provenance import dataset_fingerprint
 
         fields.update(dataset_fingerprint(args.dataset))
+    if args.closed_loop_from:  # checked before anything is written
+        from vitfly.eval.closed_loop import closed_loop_from_sweeps
+        from vitfly.zoo.pretrained import load_weights
+
+        fields["closed_loop"] = closed_loop_from_sweeps(args.closed_loop_from, args.closed_loop_policy or args.name,
+                                                        load_weights(args.checkpoint))
+    elif args.closed_loop_policy:
+        raise VitflyError("--closed-loop-policy names a label in the --closed-loop-from folders; give those too")
     path = save_pretrained(args.checkpoint, args.name, fields, args.weights_dir)
     print(f"wrote {path} and its entry in {path.parent / 'manifest.json'}; load it as pretrained:{args.name}")
     return 0

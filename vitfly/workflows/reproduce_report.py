@@ -69,14 +69,11 @@ def _ablation_tables(cfg: ReproduceConfig, rows: list[dict]) -> tuple[str, str]:
 
 def closed_loop_numbers(rows_by_sweep: dict[str, list[dict] | None], model: str, cfg: ReproduceConfig) -> dict:
     """Success (the paper's: no collision) per env and speed of one model, for the weights manifest."""
-    out: dict = {"eval_seed": cfg.evaluate.seed, "scene_preset": cfg.evaluate.preset, "success": "no collision"}
-    for sweep in ("spheres", "trees", "window"):
-        for r in rows_by_sweep.get(sweep) or []:
-            if r["policy"] == model:
-                out.setdefault(r["env"], {})[f"{r['speed']:g}"] = {
-                    "success": r["success_paper_rate"], "success_strict": r["success_strict_rate"],
-                    "collisions_per_trial": r["collisions_mean"], "trials": r["trials"]}
-    return out
+    from vitfly.eval.closed_loop import closed_loop_cells
+
+    rows = [r for sweep in ("spheres", "trees", "window") for r in rows_by_sweep.get(sweep) or []]
+    return {"eval_seed": cfg.evaluate.seed, "scene_preset": cfg.evaluate.preset, "success": "no collision",
+            **closed_loop_cells(rows, model)}
 
 
 def _training_table(cfg: ReproduceConfig) -> str:
