@@ -200,3 +200,32 @@ def test_publish_weights_takes_closed_loop_numbers_only_from_trials_of_those_wei
     assert "was flown with other weights" in capsys.readouterr().err and not refused.exists()
     assert main([*other_weights[:-1], "nobody"]) == 2
     assert "no trials of policy 'nobody'" in capsys.readouterr().err and not refused.exists()
+
+
+def test_weights_command_lists_the_manifest_and_shows_an_entry(tmp_path, capsys):
+    from vitfly.cli import main
+
+    _, ckpt = random_checkpoint(tmp_path, "convnet")
+    weights = tmp_path / "w"
+    cell = {"success_strict": 0.0, "collisions_per_trial": 1.0, "trials": 4}
+    save_pretrained(ckpt, "mine", {"preset": "test", "closed_loop": {"spheres": {
+        "3": {**cell, "success": 0.75}, "10": {**cell, "success": 0.25}}}}, weights)
+    save_pretrained(ckpt, "bare", {}, weights)
+    capsys.readouterr()
+    assert main(["weights", "--weights-dir", str(weights)]) == 0
+    lines = capsys.readouterr().out.splitlines()
+    assert lines[0].startswith(f"weights in {weights}: fly them as pretrained:NAME")
+    assert lines[1].split() == ["name", "network", "state", "epochs", "preset", "spheres", "success", "(no",
+                                "collision)"]
+    # speeds in numeric order (10 after 3), success in %; an entry without numbers or provenance says so
+    assert [line.split() for line in lines[2:]] == [
+        ["bare", "convnet", "yes", "-", "-", "-"],
+        ["mine", "convnet", "yes", "-", "test", "75", "/", "25", "%", "at", "3", "/", "10", "m/s"]]
+    assert main(["weights", "mine", "--weights-dir", str(weights)]) == 0
+    assert json.loads(capsys.readouterr().out) == read_manifest(weights)["models"]["mine"]
+    assert main(["weights", "nope", "--weights-dir", str(weights)]) == 2
+    assert "pretrained:nope: not in" in capsys.readouterr().err
+    assert main(["weights"]) == 0  # the shipped ones: the paper-budget ConvNet beside the shipped study's
+    shipped = {line.split()[0]: line.split() for line in capsys.readouterr().out.splitlines()[2:]}
+    assert shipped["convnet_paper"][:5] == ["convnet_paper", "convnet", "yes", "100", "paper"]
+    assert shipped["convnet"][3] == "21" and set(shipped) >= {"convnet", "lstmnet", "unet_lstm", "vit", "vit_lstm"}

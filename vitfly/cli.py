@@ -35,6 +35,7 @@ SUBCOMMANDS: dict[str, tuple[str, str]] = {
     "dagger": ("dagger", "DAgger with the privileged expert beside behaviour cloning at equal labelled frames"),
     "publish-weights": ("publish_weights", "a trained checkpoint as weights/NAME.safetensors (fp16) + manifest"),
     "configs": ("configs", "the configs shipped with vitfly: names for --config, what each is, where it lives"),
+    "weights": ("weights", "the pretrained weights at hand: names for pretrained:NAME, network, training, success"),
 }
 
 
