@@ -114,15 +114,17 @@ def test_the_installed_vitfly_runs_with_its_own_configs_and_weights(venv, run):
     assert version.startswith(f"vitfly {__version__} from {site_dir / 'vitfly'} ")
     listing = run("configs").stdout
     assert str(site_dir / "vitfly" / "configs") in listing and "fit/vit_lstm" in listing
+    weights = run("weights").stdout
+    assert str(site_dir / "vitfly" / "weights") in weights and "convnet_paper  convnet" in weights
     out = run("evaluate", "--policy", "pretrained:convnet", "--speeds", "4", "--trials", "1", "--timeout", "3",
               "--out", "eval", "--no-gif", "--no-plots", "--no-progress").stdout
     assert "1 trials flown" in out
     record = json.loads((run.cwd / "eval" / "trials.jsonl").read_text().splitlines()[0])
     assert record["extra"]["vitfly_version"] == __version__
     assert "class_path: vitfly.zoo.policy.vit_lstm" in run("fit", "--config", "fit/vit_lstm", "--print_config").stdout
-    # every shipped network flies from the wheel: the same command for the other four, in one process of the
-    # installed vitfly (vitfly.cli.main, what the `vitfly` script calls) rather than four process starts
-    others = ("lstmnet", "unet_lstm", "vit", "vit_lstm")
+    # every shipped network flies from the wheel: the same command for the others, in one process of the
+    # installed vitfly (vitfly.cli.main, what the `vitfly` script calls) rather than a process start each
+    others = ("convnet_paper", "lstmnet", "unet_lstm", "vit", "vit_lstm")
     code = ("import sys; from vitfly.cli import main; sys.exit(max(main(['evaluate', '--policy', f'pretrained:{n}', "
             "'--speeds', '4', '--trials', '1', '--timeout', '1.5', '--out', 'eval', '--no-gif', '--no-plots', "
             f"'--no-progress']) for n in {others!r}))")
