@@ -9,6 +9,7 @@
 - ``evaluation``: sweep + reports + GIF as one call;
 - ``repeats``: repeated trials of one fixed scene from jittered starts, and their mean path;
 - ``paper_figures``: the paper's results figures; ``findings``: each paper finding checked, with intervals;
+- ``closed_loop``: the closed-loop numbers a weights manifest records, only from trials of those weights;
 - ``latency``: the paper's latency table (``vitfly benchmark-latency``);
 - ``explain``: attention and Grad-CAM maps over a flight, with consistency numbers (``vitfly explain``).
 
