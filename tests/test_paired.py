@@ -234,12 +234,10 @@ def test_paired_findings_figure_draws_each_claim_where_its_interval_lies(tmp_pat
     assert not (tmp_path / "none.png").exists()
 
 
-def test_paired_figure_script_draws_a_published_outcomes_file(tmp_path, capsys, monkeypatch):
-    from pathlib import Path
+def test_paired_figure_script_draws_a_published_outcomes_file(tmp_path, capsys):
 
     from vitfly.eval.records import write_outcomes
 
-    monkeypatch.syspath_prepend(str(Path(__file__).resolve().parents[1]))
     script = load_script("paired_figure")
     recs = (flights("a", lambda k: 0) + flights("b", lambda k: 1) + flights("a", lambda k: 0, speed=3.0)
             + flights("b", lambda k: k % 2, speed=3.0))
@@ -278,9 +276,8 @@ def test_paired_figure_script_pairs_two_sweeps_that_flew_one_label(tmp_path, cap
         "success    new/convnet - old/convnet, spheres, 7 m/s: +100 points [+77, +100], 30 pairs, McNemar p=1.9e-09"]
 
 
-def test_a_study_results_json_gives_back_its_paired_findings(tmp_path, capsys, monkeypatch):
+def test_a_study_results_json_gives_back_its_paired_findings(tmp_path, capsys):
     import json
-    from pathlib import Path
 
     from vitfly.eval.paired import PairedDifference
     from vitfly.eval.paired_findings import PairedFinding
@@ -293,7 +290,6 @@ def test_a_study_results_json_gives_back_its_paired_findings(tmp_path, capsys, m
     with pytest.raises(VitflyError, match="results.json: comparison 0: not a paired difference"):
         PairedDifference.from_dict({"metric": "success"}, "results.json: comparison 0")
 
-    monkeypatch.syspath_prepend(str(Path(__file__).resolve().parents[1]))
     script = load_script("paired_figure")
     (tmp_path / "results.json").write_text(json.dumps(kept))
     assert script.main([str(tmp_path / "results.json"), "--out", str(tmp_path / "paired.png")]) == 0

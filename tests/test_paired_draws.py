@@ -150,10 +150,7 @@ def test_borrowing_against_draws_matches_the_mixture_by_hand():
     assert (round(low, 2), round(high, 2)) == (-1.19, 2.19)  # wider than ConvNet's draws alone: 0.5 -+ 0.707
 
 
-def test_calibration_script_shows_one_draw_deciding_between_equal_networks(capsys, monkeypatch):
-    from pathlib import Path
-
-    monkeypatch.syspath_prepend(str(Path(__file__).resolve().parents[1]))
+def test_calibration_script_shows_one_draw_deciding_between_equal_networks(capsys):
     calibration = load_script("paired_calibration")
     assert calibration.main(["--draws", "1x1", "4x4", "--studies", "60", "--resamples", "500",
                              "--draw-sd-points", "25"]) == 0

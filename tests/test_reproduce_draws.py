@@ -99,7 +99,6 @@ def test_gpu_slots_know_draws_as_runs(tmp_path, monkeypatch):
     import argparse
 
     monkeypatch.chdir(REPO)
-    monkeypatch.syspath_prepend(str(REPO))  # the scripts import each other as scripts.<name>
     gpu, slots = load_script("gpu"), load_script("gpu_reproduce")
     path = config(tmp_path, {"convnet-nostate": [5]})
     where = {"config": str(path), "preset": "tiny", "run_dir": str(tmp_path / "run"), "data": str(tmp_path / "d.h5")}

@@ -21,7 +21,7 @@ from pathlib import Path
 from vitfly.errors import VitflyError
 from vitfly.eval import records
 from vitfly.eval.aggregate import summarize
-from vitfly.eval.fingerprint import digest, network_fingerprint
+from vitfly.eval.fingerprint import learned_policy_id, network_fingerprint
 
 ENVS = ("spheres", "trees", "window")
 
@@ -48,15 +48,13 @@ def closed_loop_from_sweeps(dirs: Sequence[str | Path], policy: str, net) -> dic
     for d in dirs:
         if not Path(d).is_dir():
             raise VitflyError(f"{d}: no such evaluation folder (--closed-loop-from)")
-        found += [r for r in records.merge_records(records.read_records(p) for p in records.report_files(d))
-                  if r.policy == policy]
+        found += [r for r in records.read_report_records(d) if r.policy == policy]
     if not found:
         raise VitflyError(f"{names}: no trials of policy {policy!r} (--closed-loop-policy names the label the "
                           "weights were flown under)")
     weights = network_fingerprint(net)
     for rec in found:
-        backend = rec.extra.get("backend", "eager")
-        if rec.setup.get("policy_id") != digest({"network": weights, "backend": backend}):
+        if rec.setup.get("policy_id") != learned_policy_id(weights, rec.extra.get("backend")):
             raise VitflyError(f"{names}: trial {rec.env} {rec.speed:g} m/s #{rec.trial} of {policy!r} was flown with "
                               f"other weights (policy_id {rec.setup.get('policy_id')}), not the checkpoint's; "
                               "nothing published")

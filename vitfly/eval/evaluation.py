@@ -68,7 +68,7 @@ def write_outputs(out_dir: str | Path, with_plots: bool = True, title: str | Non
     ``reports.json`` is written last, so reports cut short by a kill are written again.
     """
     out_dir = Path(out_dir)
-    recs = records.merge_records(records.read_records(p) for p in records.report_files(out_dir))
+    recs = records.read_report_records(out_dir)
     if not recs:
         raise VitflyError(f"{out_dir}: no finished trials (trials*.jsonl or {records.OUTCOMES_FILE}) to report on")
     records.check_consistent(recs, str(out_dir))

@@ -90,7 +90,12 @@ def policy_fingerprint(source) -> str:
 
         return digest({"modular": source.spec, "options": source.planner_options(),
                        "code_version": PLANNERS_CODE_VERSION})
-    return digest({"network": network_fingerprint(source.load_network()), "backend": source.backend})
+    return learned_policy_id(network_fingerprint(source.load_network()), source.backend)
+
+
+def learned_policy_id(network: str, backend: str) -> str:
+    """``policy_id`` of a network (its :func:`network_fingerprint`) flown with the inference ``backend``."""
+    return digest({"network": network, "backend": backend})
 
 
 def rollout_fingerprint(rollout_config, sim: dict | None = None) -> str:

@@ -326,6 +326,11 @@ def report_files(out_dir: str | Path) -> list[Path]:
     return trial_files or ([outcomes] if outcomes.exists() else [])
 
 
+def read_report_records(out_dir: str | Path) -> list[TrialRecord]:
+    """The records the reports of ``out_dir`` are made from (``report_files``), merged by key."""
+    return merge_records(read_records(p) for p in report_files(out_dir))
+
+
 def only_outcomes(out_dir: str | Path) -> bool:
     """True for a folder whose reports come from its ``OUTCOMES_FILE`` alone (a published table: no trials)."""
     return report_files(out_dir) == [Path(out_dir) / OUTCOMES_FILE]
