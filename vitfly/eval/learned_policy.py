@@ -217,11 +217,47 @@ class BatchedLearnedPolicy:
         return deploy_command_torch(raw, obs.desired_speed.to(raw), x_m).to(obs.position.dtype)
 
 
+class DifferentiablePolicy:
+    """A zoo network as a batched policy whose commands keep the autograd graph, for flying it through
+    :func:`vitfly.sim.batched.differentiable.fly_differentiable` and training it through the simulator.
+
+    The same inputs and deployment as :class:`BatchedLearnedPolicy` (the tick's depth, desired speed and
+    attitude into the network, its output turned into a command by ``deploy_command_torch``, take-off ramp
+    included unless ``takeoff_ramp`` is False), but no ``no_grad``, every env in every call, and the recurrent
+    state carried from tick to tick inside the graph (``reset`` zeroes it). The network runs in the mode, on
+    the device and in the dtype it has (``net.train()`` or ``net.eval()``, ``net.double()`` for float64).
+    """
+
+    batched = True
+    needs_depth = True
+
+    def __init__(self, net: nn.Module, takeoff_ramp: bool = True):
+        self.net = net
+        self.takeoff_ramp = bool(takeoff_ramp)
+        self._hidden = None
+
+    def reset(self, num_envs: int) -> None:
+        init = getattr(self.net, "initial_hidden", None)
+        p = next(self.net.parameters())
+        recurrent = getattr(self.net, "is_recurrent", False) and init is not None
+        self._hidden = init(int(num_envs), device=p.device, dtype=p.dtype) if recurrent else None
+
+    def __call__(self, obs) -> torch.Tensor:
+        p = next(self.net.parameters())
+        like = dict(device=p.device, dtype=p.dtype)
+        n = obs.depth.shape[0]
+        raw, self._hidden = self.net(obs.depth.to(**like)[:, None, None], obs.desired_speed.to(**like).reshape(n, 1, 1),
+                                     obs.quat.to(**like).reshape(n, 1, 4), self._hidden)
+        out = obs.position
+        x_m = out[:, 0] if self.takeoff_ramp else None
+        return deploy_command_torch(raw.reshape(n, 3).to(out), obs.desired_speed.to(out), x_m)
+
+
 def deploy_command_torch(raw: torch.Tensor, desired_speed_mps: torch.Tensor, x_m: torch.Tensor | None = None,
                          ramp: ExpertConfig | None = None) -> torch.Tensor:
-    """:func:`deploy_command` on float64 tensors (N, 3), (N,), (N,), with the same operations in the same order."""
-    v = raw.clone()
-    v[:, 0] = v[:, 0].clamp(-1.0, 1.0)
+    """:func:`deploy_command` on float64 tensors (N, 3), (N,), (N,), with the same operations in the same order
+    (and no in-place writes, so that gradients flow through it: :class:`DifferentiablePolicy`)."""
+    v = torch.cat([raw[:, :1].clamp(-1.0, 1.0), raw[:, 1:]], 1)
     norm = torch.sqrt(v[:, 0] * v[:, 0] + v[:, 1] * v[:, 1] + v[:, 2] * v[:, 2])[:, None]
     ahead = torch.zeros(3, dtype=v.dtype, device=v.device)  # filled on the device: no copy from the host
     ahead[0] = 1.0
@@ -230,7 +266,8 @@ def deploy_command_torch(raw: torch.Tensor, desired_speed_mps: torch.Tensor, x_m
     if x_m is not None:
         cfg = ramp or ExpertConfig()
         ramped = (x_m / cfg.ramp_distance_m * desired_speed_mps).clamp_min(cfg.ramp_min_speed_mps)
-        command[:, 0] = torch.where(x_m < cfg.ramp_distance_m, ramped, command[:, 0])
+        forward = torch.where(x_m < cfg.ramp_distance_m, ramped, command[:, 0])
+        command = torch.cat([forward[:, None], command[:, 1:]], 1)
     return command
 
 
