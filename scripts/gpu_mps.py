@@ -11,11 +11,15 @@ folder, so only the processes given its environment (the slot's runs) connect to
 compute mode included, stay as they are. A CUDA client is then started through it once (``PROBE``); only if that
 works are the runs given the daemon's environment, otherwise the daemon is told to quit and the runs share the
 card as before. The daemon quits when the block ends. What happened goes into the slot's report
-(``gpu_reproduce.json``: ``mps``), beside the runs' epoch times that say whether it paid.
+(``gpu_reproduce.json``: ``mps``), beside the runs' epoch times that say whether it paid. A check that failed is
+written down in ``memo`` (the slot's work folder, which a warm machine keeps between calls), so that a follow-on
+call on the same machine does not spend its device time finding out again (a client that hangs costs
+``timeout_s``).
 """
 
 from __future__ import annotations
 
+import json
 import os
 import shutil
 import subprocess
@@ -34,8 +38,9 @@ class SharedCard:
     for the block's children); ``card.info["note"]`` says why not otherwise. ``probe`` is the Python code a
     client runs through the daemon before any run does."""
 
-    def __init__(self, runs: int, wanted: bool = True, probe: str = PROBE, timeout_s: float = 120.0) -> None:
-        self.runs, self.wanted, self.probe, self.timeout_s = runs, wanted, probe, timeout_s
+    def __init__(self, runs: int, wanted: bool = True, probe: str = PROBE, timeout_s: float = 45.0,
+                 memo: Path | None = None) -> None:
+        self.runs, self.wanted, self.probe, self.timeout_s, self.memo = runs, wanted, probe, timeout_s, memo
         self.info: dict = {"mps": False}
         self.exe: str | None = None
         self.env: dict[str, str] = {}
@@ -47,6 +52,9 @@ class SharedCard:
             return self._without("--no-mps")
         if self.runs < 2:
             return self._without("one run: nothing to share the card with")
+        earlier = self._earlier_failure()
+        if earlier is not None:
+            return self._without(f"the MPS check failed in an earlier call on this machine ({earlier})")
         self.exe = shutil.which(CONTROL)
         if self.exe is None:
             return self._without(f"{CONTROL} not found (no NVIDIA driver utilities here)")
@@ -58,7 +66,7 @@ class SharedCard:
         started = self._control(["-d"])
         if started.returncode != 0:
             self._forget()
-            return self._without(f"{CONTROL} -d exited {started.returncode}: {last_line(started)}")
+            return self._failed(f"{CONTROL} -d exited {started.returncode}: {last_line(started)}")
         try:
             client = subprocess.run([sys.executable, "-c", self.probe], env={**os.environ, **self.env},
                                     capture_output=True, text=True, timeout=self.timeout_s)
@@ -70,7 +78,7 @@ class SharedCard:
             said = log.read_text(errors="replace").strip().splitlines()[-1:] if log.exists() else []
             failed += f"; control.log: {said[0]}" if said else ""
             self._quit()
-            return self._without(f"a CUDA client could not start through the MPS daemon ({failed}); the daemon quit")
+            return self._failed(f"a CUDA client could not start through the MPS daemon ({failed}); the daemon quit")
         self.saved = {k: os.environ.get(k) for k in self.env}
         os.environ.update(self.env)
         servers = self._control([], "get_server_list\n").stdout.split()
@@ -90,6 +98,22 @@ class SharedCard:
     def _without(self, why: str) -> SharedCard:
         self.info = {"mps": False, "note": why}
         return self
+
+    def _failed(self, why: str) -> SharedCard:
+        """No MPS, for a reason a later call on this machine would meet again: written to ``memo``."""
+        if self.memo is not None:
+            self.memo.parent.mkdir(parents=True, exist_ok=True)
+            self.memo.write_text(json.dumps({"note": why}) + "\n")
+        return self._without(why)
+
+    def _earlier_failure(self) -> str | None:
+        """The note of a check that failed in an earlier call (``memo``), or None."""
+        if self.memo is None or not self.memo.exists():
+            return None
+        try:
+            return str(json.loads(self.memo.read_text())["note"])
+        except (ValueError, KeyError, TypeError):
+            return None  # unreadable: check again
 
     def _control(self, args: list[str], stdin: str | None = None) -> subprocess.CompletedProcess:
         assert self.exe is not None

@@ -455,7 +455,7 @@ def train(args: argparse.Namespace) -> int:
     place_resumed(cfg, resumed)
     todo = runs_to_train(cfg, labels, report)
     deadline = start + args.deadline_s - args.reserve_s
-    with SharedCard(len(todo), wanted=not args.no_mps) as card:
+    with SharedCard(len(todo), wanted=not args.no_mps, memo=work / "mps_check.json") as card:
         report["mps"] = card.info
         log(f"mps: {card.info}")
         with CardLoad(work / "card_load.csv") as load:  # how busy the runs kept the card, for the next plan

@@ -102,3 +102,34 @@ def test_runs_started_in_the_block_connect_to_the_private_daemon_which_quits_at_
     assert os.environ[PIPE] == "/somewhere/else"
     assert calls.read_text().splitlines() == [f"start {seen}", f"get_server_list {seen}", f"quit {seen}"]
     assert not Path(seen).exists()
+
+
+def test_a_check_that_failed_is_not_paid_for_again_in_a_follow_on_call(tmp_path, monkeypatch):
+    """The first call's failed check is written down in the work folder a warm machine keeps; the follow-on call
+    reads it and leaves the daemon alone (a client that hangs would cost it the probe's timeout again)."""
+    monkeypatch.delenv(PIPE, raising=False)
+    calls = stand_in(tmp_path / "bin")
+    with_path(monkeypatch, tmp_path / "bin")
+    memo = tmp_path / "work" / "mps_check.json"
+    with SharedCard(3, memo=memo) as first:
+        pass
+    assert first.info["mps"] is False and memo.exists()
+    asked = calls.read_text()
+    with SharedCard(3, memo=memo) as again:
+        assert PIPE not in os.environ
+    assert again.info == {"mps": False, "note": f"the MPS check failed in an earlier call on this machine "
+                                                f"({first.info['note']})"}
+    assert calls.read_text() == asked  # the daemon was not asked again
+    memo.write_text("not json")  # an unreadable note: check again
+    with SharedCard(3, memo=memo) as third:
+        pass
+    assert third.info["note"] == first.info["note"] and calls.read_text() != asked
+
+
+def test_a_daemon_that_works_leaves_no_note(tmp_path, monkeypatch):
+    stand_in(tmp_path / "bin")
+    with_path(monkeypatch, tmp_path / "bin")
+    memo = tmp_path / "mps_check.json"
+    with SharedCard(2, probe="pass", memo=memo) as card:
+        assert card.info["mps"] is True
+    assert not memo.exists()
