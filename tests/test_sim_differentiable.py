@@ -193,3 +193,29 @@ def test_bad_arguments_are_one_line_each():
         fly_differentiable(batch, policy, speed, 1, detach_every=0)
     with pytest.raises(ValueError, match=r"policy returned commands of shape \(1, 2\)"):
         fly_differentiable(batch, lambda obs: torch.zeros(1, 2, dtype=F64), speed, 1)
+
+
+def test_the_compiled_flight_and_its_gradients_equal_the_eager_ones():
+    # every physics step and camera kernel traced by torch.compile and differentiated by AOT autograd (the
+    # "aot_eager" backend: inductor's code generation would take a minute here; its gradients are compared with
+    # eager ones by benchmarks/sim_gradients.py --compile)
+    cfg = RolloutConfig(physics="native", camera=CameraConfig(height=6, width=8, render_ground=False))
+    batch = scene_batch([sphere_ahead_scene(0.4, 4.0, 1.5), sphere_ahead_scene(-0.5, 5.0, 1.2)])
+    g = torch.Generator().manual_seed(1)
+    weight = (2.0 * torch.randn(3, 8, generator=g, dtype=F64)).requires_grad_()
+    bias = torch.tensor([0.0, 0.3, 0.1], dtype=F64, requires_grad=True)
+    speed = torch.tensor([5.0, 4.0], dtype=F64)
+
+    def flown(compile):
+        flight = fly_differentiable(batch, LinearDepthPolicy(weight, bias), speed, 3, cfg, compile=compile)
+        loss = torch.relu(2.0 - flight.clearance).square().sum() + flight.position[-1, :, 1].square().sum()
+        grads = torch.autograd.grad(loss, (weight, bias))
+        return flight, grads
+
+    (eager, eager_grads), (compiled, compiled_grads) = flown(False), flown("aot_eager")
+    assert ((compiled.depth > 0) & (compiled.depth < 1)).sum() >= 8
+    for a, b in zip(eager, compiled, strict=True):
+        torch.testing.assert_close(b, a, rtol=0, atol=1e-12)
+    for a, b in zip(eager_grads, compiled_grads, strict=True):
+        assert float(a.abs().max()) > 0
+        torch.testing.assert_close(b, a, rtol=1e-9, atol=1e-12)

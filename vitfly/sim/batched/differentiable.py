@@ -57,6 +57,11 @@ class Flight(NamedTuple):
     command: torch.Tensor
 
 
+def _physics_substep(state: DroneTensors, command: torch.Tensor, airframe, gains, dt: float) -> DroneTensors:
+    """One physics step of the native back end under the cascaded controller tracking ``command`` (E, 3) m/s."""
+    return physics_step(state, velocity_control(command, state, airframe, gains), airframe, dt)
+
+
 def clearance(position: torch.Tensor, batch: SceneBatch) -> torch.Tensor:
     """(E,) signed distance (m) from each drone's centre ``position`` (E, 3) to its scene's nearest obstacle."""
     distances = signed_distances(position, batch)
@@ -74,6 +79,7 @@ def fly_differentiable(
     start: DroneTensors | None = None,
     render: bool = True,
     detach_every: int | None = None,
+    compile: bool | str = False,
 ) -> Flight:
     """Fly the E scenes of ``batch`` for ``ticks`` control ticks under ``policy``, keeping the autograd graph.
 
@@ -84,7 +90,11 @@ def fly_differentiable(
     (``config.physics`` is not used: this is the native back end's step); ``start`` replaces the hover
     start (e.g. a state that requires grad). ``detach_every`` k cuts the graph between the state of every
     k-th tick and the ones before (truncated backpropagation through time: bounded memory, shorter
-    gradients); None keeps it whole. Runs on the batch's device and dtype.
+    gradients); None keeps it whole. ``compile`` runs the physics step (controller included) and the camera's
+    kernels through ``torch.compile``, their backward passes too (about a minute of compiling in a fresh process
+    on a CPU; docs/performance.md says what it gains); a string names
+    torch.compile's backend (True: inductor; "aot_eager" traces and differentiates the same graphs without
+    generating code, in seconds, for checks). Runs on the batch's device and dtype.
     """
     cfg = config or RolloutConfig()
     e = batch.num_envs
@@ -101,7 +111,10 @@ def fly_differentiable(
         raise ValueError(f"start: expected the state of {e} drones, positions (E, 3); got positions of shape {got}")
     substeps, dt = cfg.physics_steps_per_tick, 1.0 / cfg.physics_hz
     af, gains = cfg.airframe, cfg.gains
-    camera = BatchedCamera(cfg.camera, batch.device, batch.dtype) if render else None
+    backend = "inductor" if compile is True else compile
+    compiler = (lambda fn: torch.compile(fn, dynamic=True, backend=backend)) if backend else None
+    camera = BatchedCamera(cfg.camera, batch.device, batch.dtype, compile=compiler) if render else None
+    step = torch.compile(_physics_substep, backend=backend) if backend else _physics_substep
     state = start if start is not None else hover_state(torch.as_tensor(cfg.task.start, **like).expand(e, 3), af)
     active = torch.ones(e, dtype=torch.bool, device=batch.device)
     active_host = np.ones(e, dtype=bool)
@@ -128,7 +141,7 @@ def fly_differentiable(
         depths.append(depth)
         commands.append(command)
         for _ in range(substeps):
-            state = physics_step(state, velocity_control(command, state, af, gains), af, dt)
+            state = step(state, command, af, gains, dt)
             time_s += dt
     positions.append(state.position)
     velocities.append(state.velocity)
