@@ -229,3 +229,16 @@ def test_weights_command_lists_the_manifest_and_shows_an_entry(tmp_path, capsys)
     shipped = {line.split()[0]: line.split() for line in capsys.readouterr().out.splitlines()[2:]}
     assert shipped["convnet_paper"][:5] == ["convnet_paper", "convnet", "yes", "100", "paper"]
     assert shipped["convnet"][3] == "21" and set(shipped) >= {"convnet", "lstmnet", "unet_lstm", "vit", "vit_lstm"}
+
+
+def test_listing_the_weights_needs_no_torch_and_stops_quietly_when_the_reader_does():
+    code = ("import sys; from vitfly.cli import main; code = main(['weights']); "
+            "assert 'torch' not in sys.modules, 'torch was imported'; sys.exit(code)")
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
+    assert done.returncode == 0, done.stderr
+    assert "convnet_paper" in done.stdout
+    # a reader that goes before reading anything (as `head` does after its lines): no error line, no traceback,
+    # the exit status of a program stopped by SIGPIPE
+    piped = subprocess.run(["bash", "-o", "pipefail", "-c", f"'{sys.executable}' -m vitfly.cli weights | true"],
+                           capture_output=True, text=True, timeout=60)
+    assert (piped.returncode, piped.stderr) == (141, "")

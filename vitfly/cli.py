@@ -10,6 +10,7 @@ from __future__ import annotations
 import argparse
 import errno
 import importlib
+import os
 import re
 import sys
 
@@ -107,6 +108,9 @@ def main(argv: list[str] | None = None) -> int:
     except VitflyError as err:
         print(f"vitfly: error: {err}", file=sys.stderr)
         return 2
+    except BrokenPipeError:  # the reader stopped early (`vitfly weights | head`): quiet, as other commands are
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())  # no second error when Python flushes
+        return 141
     except OSError as err:  # an unwritable or missing location, permission denied, a full disk: bad input too
         print(f"vitfly: error: {os_error_line(err)}", file=sys.stderr)
         return 2

@@ -30,7 +30,7 @@ def spheres_success(entry: dict) -> str:
 
 
 def run(args: argparse.Namespace) -> int:
-    from vitfly.zoo.pretrained import manifest_entry, read_manifest, weights_dir
+    from vitfly.weights_manifest import manifest_entry, read_manifest, weights_dir
 
     if args.name is not None:
         print(json.dumps(manifest_entry(args.name, args.weights_dir), indent=2))
