@@ -144,6 +144,23 @@ def test_detach_every_cuts_the_graph_between_ticks_without_changing_the_flight()
     assert truncated[1] is None or float(truncated[1].abs().max()) == 0.0  # no path back past tick 2
 
 
+def test_detach_every_cuts_a_recurrent_policys_state_too():
+    net = create_model("lstmnet").double().eval()
+    policy = DifferentiablePolicy(net)
+    cuts = []
+    detach = policy.detach_state
+    policy.detach_state = lambda: (cuts.append(len(cuts)), detach())
+    batch = scene_batch([sphere_ahead_scene()])
+    speed = torch.tensor([4.0], dtype=F64)
+    fly_differentiable(batch, policy, speed, 5, detach_every=2, render=False)
+    assert len(cuts) == 2  # before ticks 2 and 4
+    hidden = [h.clone() for h in policy._hidden]
+    assert all(h.requires_grad for h in policy._hidden)  # tick 4 ran after the last cut
+    policy.detach_state()
+    assert not any(h.requires_grad for h in policy._hidden)
+    assert all(torch.equal(a, b) for a, b in zip(hidden, policy._hidden, strict=True))
+
+
 def test_a_policy_learns_to_pass_beside_the_sphere_by_gradient_descent_through_the_simulator():
     # one parameter, the lateral command (m/s); the loss wants 1.5 m of clearance from a sphere 0.3 m left of the
     # straight line and no more sideways flight than needed: gradient descent through 30 ticks (1 s; physics at

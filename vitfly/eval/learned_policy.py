@@ -242,6 +242,11 @@ class DifferentiablePolicy:
         recurrent = getattr(self.net, "is_recurrent", False) and init is not None
         self._hidden = init(int(num_envs), device=p.device, dtype=p.dtype) if recurrent else None
 
+    def detach_state(self) -> None:
+        """Cut the recurrent state from the graph before it (same values): truncated backpropagation."""
+        if self._hidden is not None:
+            self._hidden = tuple(h.detach() for h in self._hidden)
+
     def __call__(self, obs) -> torch.Tensor:
         p = next(self.net.parameters())
         like = dict(device=p.device, dtype=p.dtype)

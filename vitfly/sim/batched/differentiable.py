@@ -90,11 +90,12 @@ def fly_differentiable(
     (``config.physics`` is not used: this is the native back end's step); ``start`` replaces the hover
     start (e.g. a state that requires grad). ``detach_every`` k cuts the graph between the state of every
     k-th tick and the ones before (truncated backpropagation through time: bounded memory, shorter
-    gradients); None keeps it whole. ``compile`` runs the physics step (controller included) and the camera's
-    kernels through ``torch.compile``, their backward passes too (about a minute of compiling in a fresh process
-    on a CPU; docs/performance.md says what it gains); a string names
-    torch.compile's backend (True: inductor; "aot_eager" traces and differentiates the same graphs without
-    generating code, in seconds, for checks). Runs on the batch's device and dtype.
+    gradients), the policy's own state too where it has a ``detach_state()`` (a recurrent network's, as
+    ``DifferentiablePolicy``); None keeps it whole. ``compile`` runs the physics step (controller included)
+    and the camera's kernels through ``torch.compile``, their backward passes too (about a minute of compiling
+    in a fresh process on a CPU; docs/performance.md says what it gains); a string names torch.compile's
+    backend (True: inductor; "aot_eager" traces and differentiates the same graphs without generating code,
+    in seconds, for checks). Runs on the batch's device and dtype.
     """
     cfg = config or RolloutConfig()
     e = batch.num_envs
@@ -126,6 +127,8 @@ def fly_differentiable(
     for tick in range(ticks):
         if detach_every is not None and tick > 0 and tick % detach_every == 0:
             state = DroneTensors(*(t.detach() for t in state))
+            if hasattr(policy, "detach_state"):
+                policy.detach_state()
         positions.append(state.position)
         velocities.append(state.velocity)
         quats.append(state.quat)
