@@ -108,7 +108,7 @@ def main(argv: list[str] | None = None) -> int:
     except VitflyError as err:
         print(f"vitfly: error: {err}", file=sys.stderr)
         return 2
-    except BrokenPipeError:  # the reader stopped early (`vitfly weights | head`): quiet, as other commands are
+    except BrokenPipeError:  # the reader stopped early (`vitfly weights | head`): end quietly, as Unix tools do
         os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())  # no second error when Python flushes
         return 141
     except OSError as err:  # an unwritable or missing location, permission denied, a full disk: bad input too
