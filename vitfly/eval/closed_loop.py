@@ -23,7 +23,7 @@ from vitfly.eval import records
 from vitfly.eval.aggregate import summarize
 from vitfly.eval.fingerprint import learned_policy_id, network_fingerprint
 
-ENVS = ("spheres", "trees", "window")
+STUDY_ENVS = ("spheres", "trees", "window")  # the paper's envs (not the hardware course)
 
 
 def closed_loop_cells(rows: Sequence[dict], policy: str) -> dict:
@@ -31,7 +31,7 @@ def closed_loop_cells(rows: Sequence[dict], policy: str) -> dict:
     ``policy``'s summary rows (``vitfly.eval.aggregate.summarize``) in the study's envs."""
     out: dict = {}
     for r in rows:
-        if r["policy"] == policy and r["env"] in ENVS:
+        if r["policy"] == policy and r["env"] in STUDY_ENVS:
             out.setdefault(r["env"], {})[f"{r['speed']:g}"] = {
                 "success": r["success_paper_rate"], "success_strict": r["success_strict_rate"],
                 "collisions_per_trial": r["collisions_mean"], "trials": r["trials"]}

@@ -48,6 +48,19 @@ def _obs_field(obs, name: str):
     return obs[name] if isinstance(obs, dict) else getattr(obs, name)
 
 
+def zero_hidden_of(net: nn.Module, n: int, device=None, dtype=None):
+    """A zoo network's zero recurrent state for ``n`` envs, or None for a feed-forward network."""
+    init = getattr(net, "initial_hidden", None)
+    recurrent = getattr(net, "is_recurrent", False) and init is not None
+    return init(n, device=device, dtype=dtype) if recurrent else None
+
+
+def one_step_inputs(depth: torch.Tensor, speed: torch.Tensor, quat: torch.Tensor) -> tuple:
+    """A tick's depth (N, H, W), desired speed (N,) and quat (N, 4) as the zoo's one-step sequences:
+    (N, 1, 1, H, W), (N, 1, 1), (N, 1, 4)."""
+    return depth[:, None, None], speed.reshape(-1, 1, 1), quat.reshape(-1, 1, 4)
+
+
 def _select_hidden(hidden, idx: torch.Tensor):
     return None if hidden is None else tuple(h[:, idx] for h in hidden)
 
@@ -87,8 +100,7 @@ class LearnedPolicy:
             return self.net(depth, speed, quat, hidden)
 
     def _zero_hidden(self, n: int):
-        init = getattr(self.net, "initial_hidden", None)
-        return init(n, device=self.device) if (self.is_recurrent and init is not None) else None
+        return zero_hidden_of(self.net, n, self.device)
 
     def reset(self, num_envs: int) -> None:
         """Start a new trial in every env: zero recurrent state."""
@@ -137,8 +149,7 @@ class LearnedPolicy:
         desired speed (K,) m/s and quat (K, 4), float32 on ``self.device``; advances their recurrent state."""
         all_active = len(idx) == self.num_envs
         hidden_in = self._hidden if all_active else _select_hidden(self._hidden, idx)
-        pred, hidden_out = self._step(depth[:, None, None], speed.reshape(-1, 1, 1), quat.reshape(-1, 1, 4),
-                                      hidden_in)
+        pred, hidden_out = self._step(*one_step_inputs(depth, speed, quat), hidden_in)
         if self._hidden is not None and hidden_out is not None:
             if all_active:
                 self._hidden = tuple(h.clone() for h in hidden_out)
@@ -237,10 +248,8 @@ class DifferentiablePolicy:
         self._hidden = None
 
     def reset(self, num_envs: int) -> None:
-        init = getattr(self.net, "initial_hidden", None)
         p = next(self.net.parameters())
-        recurrent = getattr(self.net, "is_recurrent", False) and init is not None
-        self._hidden = init(int(num_envs), device=p.device, dtype=p.dtype) if recurrent else None
+        self._hidden = zero_hidden_of(self.net, int(num_envs), p.device, p.dtype)
 
     def detach_state(self) -> None:
         """Cut the recurrent state from the graph before it (same values): truncated backpropagation."""
@@ -250,12 +259,11 @@ class DifferentiablePolicy:
     def __call__(self, obs) -> torch.Tensor:
         p = next(self.net.parameters())
         like = dict(device=p.device, dtype=p.dtype)
-        n = obs.depth.shape[0]
-        raw, self._hidden = self.net(obs.depth.to(**like)[:, None, None], obs.desired_speed.to(**like).reshape(n, 1, 1),
-                                     obs.quat.to(**like).reshape(n, 1, 4), self._hidden)
+        inputs = one_step_inputs(obs.depth.to(**like), obs.desired_speed.to(**like), obs.quat.to(**like))
+        raw, self._hidden = self.net(*inputs, self._hidden)
         out = obs.position
         x_m = out[:, 0] if self.takeoff_ramp else None
-        return deploy_command_torch(raw.reshape(n, 3).to(out), obs.desired_speed.to(out), x_m)
+        return deploy_command_torch(raw.reshape(-1, 3).to(out), obs.desired_speed.to(out), x_m)
 
 
 def deploy_command_torch(raw: torch.Tensor, desired_speed_mps: torch.Tensor, x_m: torch.Tensor | None = None,

@@ -69,9 +69,9 @@ def _ablation_tables(cfg: ReproduceConfig, rows: list[dict]) -> tuple[str, str]:
 
 def closed_loop_numbers(rows_by_sweep: dict[str, list[dict] | None], model: str, cfg: ReproduceConfig) -> dict:
     """Success (the paper's: no collision) per env and speed of one model, for the weights manifest."""
-    from vitfly.eval.closed_loop import closed_loop_cells
+    from vitfly.eval.closed_loop import STUDY_ENVS, closed_loop_cells
 
-    rows = [r for sweep in ("spheres", "trees", "window") for r in rows_by_sweep.get(sweep) or []]
+    rows = [r for sweep in STUDY_ENVS for r in rows_by_sweep.get(sweep) or []]
     return {"eval_seed": cfg.evaluate.seed, "scene_preset": cfg.evaluate.preset, "success": "no collision",
             **closed_loop_cells(rows, model)}
 

@@ -123,16 +123,20 @@ def fly_differentiable(
         policy.reset(e)
     blank = torch.zeros(e, cfg.camera.height, cfg.camera.width, **like)
     positions, velocities, quats, clear, depths, commands = [], [], [], [], [], []
+
+    def keep(state: DroneTensors) -> None:
+        positions.append(state.position)
+        velocities.append(state.velocity)
+        quats.append(state.quat)
+        clear.append(clearance(state.position, batch))
+
     time_s = 0.0
     for tick in range(ticks):
         if detach_every is not None and tick > 0 and tick % detach_every == 0:
             state = DroneTensors(*(t.detach() for t in state))
             if hasattr(policy, "detach_state"):
                 policy.detach_state()
-        positions.append(state.position)
-        velocities.append(state.velocity)
-        quats.append(state.quat)
-        clear.append(clearance(state.position, batch))
+        keep(state)
         depth = camera.render(batch, state.position, state.rotation, active) if camera is not None else blank
         obs = BatchedObservation(depth, speed, state.quat, state.position, state.velocity, active, time_s, tick,
                                  batch, active_host)
@@ -141,14 +145,14 @@ def fly_differentiable(
             command = command[0]
         if command.shape != (e, 3):
             raise ValueError(f"policy returned commands of shape {tuple(command.shape)} (expected ({e}, 3))")
-        depths.append(depth)
+        if camera is not None:
+            depths.append(depth)
         commands.append(command)
         for _ in range(substeps):
             state = step(state, command, af, gains, dt)
             time_s += dt
-    positions.append(state.position)
-    velocities.append(state.velocity)
-    quats.append(state.quat)
-    clear.append(clearance(state.position, batch))
+    keep(state)
+    # without rendering, the images are one zero frame seen T times (a view: no T x E x H x W of zeros)
+    depth = torch.stack(depths) if depths else blank.expand(ticks, *blank.shape)
     return Flight(position=torch.stack(positions), velocity=torch.stack(velocities), quat=torch.stack(quats),
-                  clearance=torch.stack(clear), depth=torch.stack(depths), command=torch.stack(commands))
+                  clearance=torch.stack(clear), depth=depth, command=torch.stack(commands))
