@@ -68,6 +68,20 @@ def test_round_trip_is_the_fp16_rounding_of_the_network(tmp_path, name, use_stat
     assert read_manifest(weights)["models"][f"my_{name}"]["sha256"] == entry["sha256"]
 
 
+
+def test_the_same_checkpoint_published_again_is_the_same_file(tmp_path):
+    from safetensors import safe_open
+
+    _, ckpt = random_checkpoint(tmp_path, "lstmnet")
+    # safetensors alone orders its 4 metadata keys at random, call by call: 5 publications alike by chance ~ 24^-4
+    paths = [save_pretrained(ckpt, "my_lstmnet", {}, tmp_path / f"w{i}") for i in range(5)]
+    assert len({file_sha256(p) for p in paths}) == 1
+    size = int.from_bytes(paths[0].read_bytes()[:8], "little")
+    header = json.loads(paths[0].read_bytes()[8:8 + size])
+    assert list(header["__metadata__"]) == ["format", "model", "model_kwargs", "use_state"]
+    with safe_open(str(paths[0]), "pt") as f:  # still a valid file: safetensors reads it back
+        assert f.metadata()["model"] == "lstmnet" and f.metadata()["use_state"] == "true"
+    assert load_pretrained("pretrained:my_lstmnet", tmp_path / "w4").use_state
 def test_tampered_missing_and_mismatched_files_are_one_line(tmp_path):
     _, ckpt = random_checkpoint(tmp_path, "convnet")
     weights = tmp_path / "weights"

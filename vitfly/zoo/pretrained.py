@@ -28,7 +28,8 @@ Where (publishing, ``publish_dir``): ``directory``, else ``$VITFLY_WEIGHTS_DIR``
 repository's ``weights/`` as for reading. An installed vitfly never writes into its own package: without a
 directory, publishing is refused with one line before anything is written.
 
-Publishing writes the weights file and then the manifest, each atomically (temporary file + rename).
+Publishing writes the weights file and then the manifest, each atomically (temporary file + rename); the same
+checkpoint published twice gives the same bytes.
 A kill between the two leaves a manifest whose hash does not match the file: loading refuses it with
 one line and publishing again repairs it; a half-written file is never visible.
 """
@@ -220,6 +221,7 @@ def save_pretrained(ckpt_path: str | os.PathLike, name: str, manifest_fields: Ma
     path = root / f"{name}.safetensors"
     with atomic_path(path) as tmp:
         save_file(tensors, str(tmp), metadata=header)
+        _sort_metadata(tmp)
     entry = {"file": path.name, "sha256": file_sha256(path), "dtype": "float16", "model": str(hparams["model"]),
              "use_state": bool(hparams.get("use_state", True)),
              "model_kwargs": _plain(model_kwargs, source, "model_kwargs"), "vitfly_version": __version__,
@@ -228,6 +230,25 @@ def save_pretrained(ckpt_path: str | os.PathLike, name: str, manifest_fields: Ma
     manifest["models"] = dict(sorted(manifest["models"].items()))
     write_text(root / MANIFEST_NAME, json.dumps(manifest, indent=2) + "\n")
     return path
+
+
+def _sort_metadata(path: Path) -> None:
+    """Rewrite a safetensors file's header with its metadata in key order, in place.
+
+    safetensors writes the metadata map in a random order (a Rust HashMap), so the same weights published twice
+    gave two files and two sha256s (and a binary diff in git). The header is JSON of a fixed length: sorted, the
+    same text has the same length, and the tensors' bytes after it do not move.
+    """
+    with open(path, "r+b") as f:
+        size = int.from_bytes(f.read(8), "little")
+        raw = f.read(size)
+        header = json.loads(raw)
+        header["__metadata__"] = dict(sorted(header["__metadata__"].items()))
+        text = json.dumps(header, separators=(",", ":"), ensure_ascii=False).encode()
+        if len(text) != len(raw.rstrip(b" ")) or json.loads(text) != json.loads(raw):
+            return  # a header safetensors spelt otherwise: leave it as written (still valid, only unsorted)
+        f.seek(8)
+        f.write(text.ljust(size))
 
 
 def update_manifest(name: str, fields: Mapping, directory: str | os.PathLike | None = None) -> dict:
