@@ -10,7 +10,8 @@ from __future__ import annotations
 import argparse
 
 from vitfly.commands.engine_flags import add_engine_arguments
-from vitfly.eval.config import BACKENDS, ENVS, load_sweep_config
+from vitfly.eval.config import BACKENDS, load_sweep_config
+from vitfly.sim.scenes import ENVS
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:

@@ -11,8 +11,8 @@ from pathlib import Path
 
 from vitfly.errors import VitflyError
 from vitfly.packaged import config_path, read_yaml
+from vitfly.sim.scenes import ENVS
 
-ENVS = ("spheres", "trees", "window", "course")
 # inference back ends of learned policies: eager PyTorch, ONNX Runtime float32, ONNX Runtime with int8 products
 BACKENDS = ("eager", "compiled", "onnxruntime", "onnxruntime-int8")  # compiled: eager with torch.compile
 
