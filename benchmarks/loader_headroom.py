@@ -4,7 +4,7 @@ Streams a real dataset through ``TrajectoryDataModule``'s loader for a few epoch
 disk and decompresses; later ones hit the LRU cache when it holds the dataset). The loader hands depth
 over as uint8; the datamodule's ``on_after_batch_transfer`` makes it float32 on the training device, so
 that conversion is timed on the consumer's side, together with ConvNet optimiser steps
-(``benchmarks/train_speed.py``'s ``measure``). Prints the ratio per epoch. Target: >= 10x.
+(``benchmarks/train_speed.py``'s ``measure_steps``). Prints the ratio per epoch. Target: >= 10x.
 
     .venv/bin/python benchmarks/loader_headroom.py --data data/quickstart_spheres.h5 [--cache-mb 1024] [--cold]
 
@@ -26,7 +26,7 @@ from vitfly.datamodules.datamodule import TrajectoryDataModule
 from vitfly.datamodules.dataset import depth_to_unit_float
 
 sys.path.insert(0, str(Path(__file__).parent))
-from train_speed import measure  # noqa: E402
+from train_speed import measure_steps  # noqa: E402
 
 
 def evict_from_page_cache(path: str) -> None:
@@ -75,7 +75,8 @@ def main() -> None:
         depth_to_unit_float(batch)
         convert_s += time.perf_counter() - start
         convert_frames += batch["depth"].shape[0] * batch["depth"].shape[1]
-    step_rate, _ = measure("convnet", batch=4, steps=64, iters=5, warmup=1)
+    step_rate = measure_steps("convnet", "fp32", batch=4, steps=64, iters=5, warmup=1, device="cpu",
+                              threads=args.threads)["fps"]
     convert_rate = convert_frames / convert_s
     consumed = 1.0 / (1.0 / step_rate + 1.0 / convert_rate)
 
