@@ -242,6 +242,12 @@ def fmt_gaps(gaps: dict) -> str:
     return ", ".join(f"{k} {v:.1e}" for k, v in gaps.items())
 
 
+def outcome(record) -> tuple:
+    """What two back ends must agree on for a trial: success (the paper's and the strict), why it ended, and the
+    physics engine's contact count."""
+    return record.success_paper, record.success_strict, record.end_reason, record.extra["physics_collisions"]
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     default_physics = ["pybullet", "native"] if pybullet_available() else ["native"]
@@ -316,9 +322,7 @@ def main() -> None:
             if physics != ref:
                 base = out["end_to_end"][ref]
                 mine, theirs = ev["records"], ref_records
-                same = sum((a.success, a.end_reason, a.extra["physics_collisions"]) ==
-                           (b.success, b.end_reason, b.extra["physics_collisions"]) for a, b in zip(mine, theirs,
-                                                                                                    strict=True))
+                same = sum(outcome(a) == outcome(b) for a, b in zip(mine, theirs, strict=True))
                 path_gap = max(float(np.abs(np.asarray(a.path["position"]) - np.asarray(b.path["position"])).max())
                                for a, b in zip(mine, theirs, strict=True) if len(a.path["time"]) == len(b.path["time"]))
                 row.update(trial_rtf_speedup=row["trial_rtf_cpu_median"] / base["trial_rtf_cpu_median"],

@@ -6,6 +6,7 @@ otherwise go unnoticed until someone needs the tool.
 
 from __future__ import annotations
 
+import json
 import sys
 from pathlib import Path
 
@@ -45,3 +46,16 @@ def test_a_script_imports_and_prints_its_help(name, monkeypatch, capfd):
 def test_the_tools_are_all_found():
     assert {"train_speed", "loader_headroom", "sim_speed"} <= set(BENCHMARKS)
     assert {"gpu", "gpu_reproduce", "paired_figure"} <= set(SCRIPTS)
+
+
+def test_sim_speed_compares_the_back_ends_trial_by_trial(tmp_path, monkeypatch):
+    """The end-to-end part on both physics back ends, two trials each: the same outcomes (pybullet's and vitfly's
+    integrator fly one airframe alike), a comparison no --help reaches."""
+    pytest.importorskip("pybullet")
+    out = tmp_path / "sim_speed.json"
+    monkeypatch.setattr(sys, "argv", ["sim_speed.py", "--physics", "pybullet", "native", "--trials", "1",
+                                      "--lockstep", "2", "--eval-trials", "2", "--repeats", "1", "--skip-collect",
+                                      "--skip-batched", "--json", str(out)])
+    load_benchmark("sim_speed").main()
+    row = json.loads(out.read_text())["end_to_end"]["native"]
+    assert row["same_outcome"] == "2/2" and row["max_path_gap_m"] < 1e-3
