@@ -270,6 +270,7 @@ def _publish_closed_loop(cfg: ReproduceConfig, rows: dict) -> None:
 def _record_closed_loop(cfg: ReproduceConfig, rows: dict) -> None:
     """The shipped weights' closed-loop numbers into their manifest entries (those flown in this study); not
     into an installed vitfly's own manifest (they stay in results.json)."""
+    from vitfly.eval.closed_loop import STUDY_ENVS
     from vitfly.zoo.pretrained import WEIGHTS_ENV, can_publish, update_manifest
 
     if not can_publish():
@@ -278,7 +279,7 @@ def _record_closed_loop(cfg: ReproduceConfig, rows: dict) -> None:
         return
     for model in cfg.train.models:
         numbers = closed_loop_numbers(rows, model, cfg)
-        if any(env in numbers for env in ("spheres", "trees", "window")):
+        if any(env in numbers for env in STUDY_ENVS):
             update_manifest(model, {"closed_loop": numbers})
 
 
