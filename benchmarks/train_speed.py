@@ -294,6 +294,12 @@ def batch_rate(rows: list[list[float]], skip: int) -> dict:
 
 def worker_main(argv: list[str]) -> None:
     spec = json.loads(argv[0])
+    try:  # the allocator as vitfly's training sets it (VITFLY_MALLOC=default: as glibc comes)
+        from vitfly.host_memory import keep_freed_memory
+    except ImportError:  # a revision from before it (--baseline-rev) trains as it did
+        pass
+    else:
+        keep_freed_memory()
     kind = spec.pop("kind")
     measure = {"step": measure_steps, "arm": measure_arm, "fit": measure_fit, "loop": measure_loop}[kind]
     result = measure(**spec)

@@ -15,6 +15,7 @@ import re
 import sys
 
 from vitfly.errors import VitflyError
+from vitfly.host_memory import keep_freed_memory
 from vitfly.packaged import version_line
 from vitfly.quiet import quiet_third_party
 
@@ -92,6 +93,7 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     command, rest = argv[0], argv[1:]
     quiet_third_party()  # Lightning's tips and known dependency warnings; vitfly's own output stays
+    keep_freed_memory()  # CPU training and flying reuse freed memory instead of faulting pages in each step
     try:
         if command in LIGHTNING_SUBCOMMANDS:
             from vitfly.training.cli import run_lightning_cli

@@ -95,6 +95,7 @@ def train_policy(
     from lightning.pytorch.loggers import CSVLogger
 
     from vitfly.datamodules.datamodule import TrajectoryDataModule
+    from vitfly.host_memory import keep_freed_memory
     from vitfly.training.checkpoints import LastCheckpoint, RngState
     from vitfly.training.epoch_times import EpochTimes
     from vitfly.training.precision import trainer_precision
@@ -105,6 +106,7 @@ def train_policy(
         raise VitflyError(f"select: expected one of {', '.join(SELECT)}, got {select!r}")
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
+    keep_freed_memory()  # on a CPU, large activations reused step after step rather than mapped afresh
     with run_lock(out_dir):  # one process per run folder: a second one is told who trains it
         L.seed_everything(seed, verbose=False)
         policy = create_policy(model, use_state=use_state, **(policy_kwargs or {}))

@@ -1,0 +1,56 @@
+"""Keep freed memory in the process for reuse (glibc on Linux), so that CPU training stops faulting pages in.
+
+glibc's ``malloc`` serves every block above its mmap threshold (128 KiB, rising to at most 32 MiB) with a
+fresh ``mmap`` and gives it back to the kernel on ``free``; it also hands the heap's free top back above its
+trim threshold. A training step on a CPU allocates and frees the same large activations every step (one
+418-frame trajectory through UNet+LSTM makes feature maps of hundreds of MiB), so every step the kernel maps
+them, zero-fills each 4 KiB page on first touch and unmaps them again: about 160,000 page faults a second and
+nearly half of the CPU's time in the kernel, measured. With both thresholds at 1 GiB the freed blocks stay in
+the heap and the next step reuses them (``benchmarks/cpu_allocator.py`` measures the difference per model).
+
+The price: a process keeps its peak heap (up to 1 GiB of it free) instead of returning it, which suits a
+process that trains or flies until it ends. Nothing changes where the C library is not glibc, where the user
+set glibc's own knobs (``GLIBC_TUNABLES`` naming malloc, or ``MALLOC_MMAP_THRESHOLD_`` /
+``MALLOC_TRIM_THRESHOLD_``), or with ``VITFLY_MALLOC=default``.
+"""
+
+from __future__ import annotations
+
+import ctypes
+import ctypes.util
+import os
+import platform
+
+KEEP_BYTES = 1 << 30  # both thresholds: blocks below it come from the heap and freed ones stay there
+OPT_OUT = "VITFLY_MALLOC"  # =default: leave glibc's allocator as it is
+_M_TRIM_THRESHOLD = -1  # mallopt parameters, glibc's <malloc.h>
+_M_MMAP_THRESHOLD = -3
+_applied: bool | None = None  # the outcome of the first call (the setting is process-wide, made once)
+
+
+def why_not() -> str | None:
+    """Why the allocator is left as it is here, or None where :func:`keep_freed_memory` changes it."""
+    if os.environ.get(OPT_OUT, "").strip().lower() == "default":
+        return f"{OPT_OUT}=default"
+    if platform.system() != "Linux" or platform.libc_ver()[0] != "glibc":
+        return "not glibc on Linux"
+    if "malloc" in os.environ.get("GLIBC_TUNABLES", "") or any(
+        k in os.environ for k in ("MALLOC_MMAP_THRESHOLD_", "MALLOC_TRIM_THRESHOLD_")
+    ):
+        return "the environment sets glibc's malloc thresholds"
+    return None
+
+
+def keep_freed_memory() -> bool:
+    """Raise glibc's mmap and trim thresholds to :data:`KEEP_BYTES` for this process (and children it forks
+    from now on); True where they are raised. Safe to call more than once."""
+    global _applied
+    if _applied is None:
+        _applied = False
+        if why_not() is None:
+            libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6")
+            # mallopt returns 1 on success; a refused value leaves that threshold as it was
+            mmap_ok = libc.mallopt(_M_MMAP_THRESHOLD, KEEP_BYTES)
+            trim_ok = libc.mallopt(_M_TRIM_THRESHOLD, KEEP_BYTES)
+            _applied = mmap_ok == 1 and trim_ok == 1
+    return _applied
