@@ -18,9 +18,9 @@ PAGES = BLOCK_BYTES // 4096
 # malloc, touch and free a block, then count the minor page faults of touching a second one of the same size
 # (plain malloc: numpy and torch may ask the kernel for huge pages, which would hide the faults)
 CHILD = textwrap.dedent(f"""
-    import ctypes, ctypes.util, resource
+    import ctypes, resource
     {{setup}}
-    libc = ctypes.CDLL(ctypes.util.find_library("c"))
+    libc = ctypes.CDLL(None)
     libc.malloc.restype = ctypes.c_void_p
     libc.free.argtypes = [ctypes.c_void_p]
     def touch():

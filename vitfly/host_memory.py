@@ -17,7 +17,6 @@ set glibc's own knobs (``GLIBC_TUNABLES`` naming malloc, or ``MALLOC_MMAP_THRESH
 from __future__ import annotations
 
 import ctypes
-import ctypes.util
 import os
 import platform
 
@@ -48,7 +47,7 @@ def keep_freed_memory() -> bool:
     if _applied is None:
         _applied = False
         if why_not() is None:
-            libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6")
+            libc = ctypes.CDLL(None)  # the process's own symbols: glibc's mallopt among them
             # mallopt returns 1 on success; a refused value leaves that threshold as it was
             mmap_ok = libc.mallopt(_M_MMAP_THRESHOLD, KEEP_BYTES)
             trim_ok = libc.mallopt(_M_TRIM_THRESHOLD, KEEP_BYTES)
