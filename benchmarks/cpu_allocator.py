@@ -28,17 +28,11 @@ SETTINGS = {"glibc": "default", "vitfly": None}  # label -> VITFLY_MALLOC
 
 def one_sample(spec: dict, setting: str) -> dict:
     """frames/s of one fresh worker process under ``setting``, with its CPU seconds in user and kernel mode."""
-    env_value = SETTINGS[setting]
-    saved = os.environ.pop("VITFLY_MALLOC", None)
-    if env_value is not None:
-        os.environ["VITFLY_MALLOC"] = env_value
+    os.environ.pop("VITFLY_MALLOC", None)  # run_sample hands this process's environment to the worker
+    if SETTINGS[setting] is not None:
+        os.environ["VITFLY_MALLOC"] = SETTINGS[setting]
     before = resource.getrusage(resource.RUSAGE_CHILDREN)
-    try:
-        result = train_speed.run_sample(train_speed.ROOT, dict(spec))
-    finally:
-        os.environ.pop("VITFLY_MALLOC", None)
-        if saved is not None:
-            os.environ["VITFLY_MALLOC"] = saved
+    result = train_speed.run_sample(train_speed.ROOT, dict(spec))
     after = resource.getrusage(resource.RUSAGE_CHILDREN)
     user, kernel = after.ru_utime - before.ru_utime, after.ru_stime - before.ru_stime
     return {"fps": result["fps"], "kernel_share": kernel / max(user + kernel, 1e-9)}
