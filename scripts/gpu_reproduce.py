@@ -616,7 +616,7 @@ def status(args: argparse.Namespace) -> int:
     written into ``carry/<preset>/`` too (``scripts/gpu_carry.py``), the slot's with the moments it plans."""
     from scripts.gpu_carry import other_carries, preset_carry, write_carry
     from scripts.gpu_plan import next_slot, slot_after
-    from scripts.gpu_slots import CARRY_BYTES, mib, travelling_bytes
+    from scripts.gpu_slots import CARRY_BYTES, mib, travelling_bytes, wheels_reserve
     from scripts.gpu_travel import is_light, light_bytes
 
     cfg = load_cfg(args)
@@ -633,6 +633,10 @@ def status(args: argparse.Namespace) -> int:
     if light:
         print("  travelling light now (weights/ and docs/ out of git's index, commits refused): once the device "
               "call is done, python3 scripts/gpu.py travel full")
+    reserve = wheels_reserve(ROOT)  # every call carries the wheels: their room is planned before they are fetched
+    if reserve:
+        tree += reserve
+        print(f"  no .whl/ here yet: {mib(reserve)} kept for it (python3 scripts/gpu.py wheels)")
     room = CARRY_BYTES - tree
     planned = [r for r in rows if r.run.model not in cfg.train.cpu_models or r.state == "not started"]
     slot = next_slot(cfg, planned, room, args.carry_moments, args.deadline_s, args.reserve_s)

@@ -28,6 +28,8 @@ from vitfly.training.metrics_csv import set_aside
 
 MARKER = "unfinished.json"
 CARRY_BYTES = 64 * 2**20  # what the device tool carries to the machine, all paths together
+# room a plan keeps for .whl/ before `gpu.py wheels` has fetched it (a new checkout): 1.2 MiB on 2026-12-05
+WHEELS_RESERVE = 2 * 2**20
 MOMENTS = ("exp_avg", "exp_avg_sq", "max_exp_avg_sq")  # Adam's per-parameter state besides `step`
 DROPPED_KEYS = ("optimizer_states", "lr_schedulers", "callbacks", "loops")  # resume state, not the network
 RUN_FILES = ("metrics.csv", "split.json", "cost.json", "hparams.yaml", "data.json")  # what travels besides checkpoints
@@ -206,6 +208,12 @@ def travelling_bytes(root: Path, leave_out: Path | list[Path] | None = None) -> 
     for folder in [leave_out] if isinstance(leave_out, Path) else leave_out or []:
         files = [f for f in files if not f.resolve().is_relative_to(folder.resolve())]
     return sum(f.stat().st_size for f in files if f.is_file()) + tree_bytes(root / ".whl") * (root / ".whl").exists()
+
+
+def wheels_reserve(root: Path) -> int:
+    """Room a slot's plan keeps for ``.whl/``: none once the wheels are here (``travelling_bytes`` counts them),
+    ``WHEELS_RESERVE`` before ``gpu.py wheels`` has fetched them, since every call carries them."""
+    return 0 if (root / ".whl").exists() else WHEELS_RESERVE
 
 
 def mib(n: int) -> str:

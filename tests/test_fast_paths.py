@@ -188,6 +188,66 @@ def test_adam_is_fused_on_the_cpu():
     assert opt.param_groups[0]["fused"] is True
 
 
+def two_adam_steps(module, grads, reload: bool) -> torch.Tensor:
+    """The network's weights (flat, contiguous) after two steps of its own optimiser on ``grads``; with
+    ``reload`` the optimiser is rebuilt between them from its state dict with contiguous moments, as a resume
+    from vitfly's checkpoint files (safetensors holds contiguous tensors) gives them."""
+    params = list(module.net.parameters())
+    opt = module.configure_optimizers()
+    for step in range(2):
+        for p, g in zip(params, grads[step], strict=True):
+            p.grad = g.clone().to(memory_format=torch.channels_last) if p.dim() == 4 and not p.is_contiguous() \
+                else g.clone()
+        opt.step()
+        if reload and step == 0:
+            state = opt.state_dict()
+            for moments in state["state"].values():
+                for key, value in moments.items():
+                    moments[key] = value.contiguous()
+            opt = module.configure_optimizers()
+            opt.load_state_dict(state)
+    return torch.cat([p.detach().contiguous().flatten() for p in params])
+
+
+def test_adam_in_another_memory_layout_updates_as_the_contiguous_network():
+    """A network in channels-last layout takes the unfused Adam (torch's fused CPU kernel, given such a parameter
+    with contiguous moments, updates it wrongly), so two steps across a resume give the contiguous network's
+    weights."""
+    torch.manual_seed(0)
+    reference = create_policy("convnet", lr=1e-2, warmup_epochs=0)
+    other = create_policy("convnet", lr=1e-2, warmup_epochs=0)
+    other.load_state_dict(reference.state_dict())
+    other.net.to(memory_format=torch.channels_last)
+    assert any(not p.is_contiguous() for p in other.net.parameters())
+    grads = [[torch.randn_like(p) for p in reference.net.parameters()] for _ in range(2)]
+    want = two_adam_steps(reference, grads, reload=True)
+    torch.testing.assert_close(two_adam_steps(other, grads, reload=True), want, rtol=0, atol=1e-6)
+    assert other.configure_optimizers().param_groups[0]["fused"] is None
+
+
+def test_a_resumed_network_in_another_layout_drops_the_fused_flag(data_path, tmp_path):
+    """The checkpoint's optimiser groups bring back ``fused: True`` from a contiguous run; resumed in channels-last
+    layout, the run trains with the unfused kernel."""
+    torch.manual_seed(0)
+    module = create_policy("convnet", warmup_epochs=0)
+    dm = TrajectoryDataModule(data_path, batch_size=2, val_fraction=0.2, resident=False)
+    trainer = quiet_trainer(tmp_path, max_epochs=1)
+    trainer.fit(module, datamodule=dm)
+    trainer.save_checkpoint(tmp_path / "one.ckpt")
+    assert trainer.optimizers[0].param_groups[0]["fused"] is True
+    seen = []
+
+    class Flag(L.Callback):
+        def on_train_batch_start(self, trainer, *args):
+            seen.append(trainer.optimizers[0].param_groups[0]["fused"])
+
+    resumed = create_policy("convnet", warmup_epochs=0)
+    resumed.net.to(memory_format=torch.channels_last)
+    trainer = quiet_trainer(tmp_path, max_epochs=2, callbacks=[Flag()])
+    trainer.fit(resumed, datamodule=dm, ckpt_path=tmp_path / "one.ckpt")
+    assert seen and set(seen) == {None}
+
+
 # -- torch.compile -------------------------------------------------------------------------------
 
 

@@ -229,6 +229,16 @@ def test_what_a_call_sends_beside_its_carry(tmp_path):
         travelling_bytes(plain)
 
 
+def test_a_plan_keeps_room_for_the_wheels_before_they_are_fetched(tmp_path):
+    """A new checkout has no .whl/ yet, but every call will carry it: the plan keeps WHEELS_RESERVE for it (more
+    than the 1.2 MiB the four wheels took on 2026-12-05); once fetched, travelling_bytes counts them instead."""
+    from scripts.gpu_slots import WHEELS_RESERVE, wheels_reserve
+
+    assert wheels_reserve(tmp_path) == WHEELS_RESERVE >= 1.2 * 2**20
+    (tmp_path / ".whl").mkdir()
+    assert wheels_reserve(tmp_path) == 0
+
+
 def test_a_presets_slot_leaves_the_other_presets_carries_here(tmp_path):
     """carry/paper_vitfly's slot sends nothing of carry/paper (and the other way round): status plans without it
     and prints it in the `travel light --leave` line."""

@@ -142,3 +142,18 @@ def test_how_often_a_run_validated_counts_only_where_validation_chooses_the_epoc
     other = train_settings(TrainStage(model="lstmnet", select="last",
                                       trainer_kwargs={"check_val_every_n_epoch": 5, "precision": "bf16-mixed"}), "d.h5")
     assert not same_settings(last, other)
+
+
+def test_how_a_run_batched_its_validation_never_makes_it_stale():
+    """``val_batch_size`` and ``cpu_val_batch_size`` change how many trajectories a validation call takes, not its
+    metrics, so a run finished without them stays done when a preset adds them, whichever epoch it flies (with
+    ``select: best`` the validation losses it chose by are the same numbers); any other data argument counts."""
+    batched = {"time_bucket_steps": 64, "val_batch_size": 16, "cpu_val_batch_size": 4}
+    for select in ("last", "best"):
+        recorded = train_settings(TrainStage(model="unet_lstm", select=select,
+                                             data_kwargs={"time_bucket_steps": 64}), "d.h5")
+        wanted = train_settings(TrainStage(model="unet_lstm", select=select, data_kwargs=batched), "d.h5")
+        assert same_settings(recorded, wanted)
+        other = train_settings(TrainStage(model="unet_lstm", select=select,
+                                          data_kwargs={**batched, "time_bucket_steps": 32}), "d.h5")
+        assert not same_settings(recorded, other)

@@ -199,6 +199,21 @@ def test_validation_batches_of_many_trajectories_score_as_one_at_a_time(dataset_
 def test_a_validation_batch_size_below_one_is_one_error(dataset_path):
     with pytest.raises(VitflyError, match="val_batch_size: expected a positive number of trajectories, got 0"):
         TrajectoryDataModule(dataset_path, val_batch_size=0)
+    with pytest.raises(VitflyError, match="cpu_val_batch_size: expected a positive number of trajectories, got -1"):
+        TrajectoryDataModule(dataset_path, val_batch_size=16, cpu_val_batch_size=-1)
+
+
+def test_a_trainer_on_the_cpu_validates_cpu_val_batch_size_a_call(dataset_path, tmp_path):
+    """``cpu_val_batch_size: 2`` beside ``val_batch_size: 16``: a CPU trainer validates the 5 held-out trajectories
+    in ceil(5 / 2) = 3 calls (16 a call would be one), with the one-at-a-time metrics."""
+    one, _ = validation_metrics(dataset_path, tmp_path / "a", "lstmnet")
+    many, calls = validation_metrics(dataset_path, tmp_path / "b", "lstmnet", val_batch_size=16,
+                                     cpu_val_batch_size=2, time_bucket_steps=16)
+    assert calls == 3
+    for key, value in one.items():
+        torch.testing.assert_close(many[key], value, rtol=1e-5, atol=1e-6, msg=key)
+    _, calls = validation_metrics(dataset_path, tmp_path / "c", "lstmnet", val_batch_size=16)
+    assert calls == 1
 
 
 def test_chunks_of_a_bucket_multiple_share_one_shape(dataset_path, tmp_path):

@@ -163,6 +163,10 @@ class TrajectoryDataModule(L.LightningDataModule):
             valid steps; padding at the end of a row never reaches a causal network's valid outputs) in fewer
             calls: with the paper's one-trajectory steps, validating ViT+LSTM one trajectory at a time took 60 %
             of an epoch on a GPU (docs/training.md#validation-batches-and-where-an-epochs-time-goes).
+        cpu_val_batch_size: ``val_batch_size`` for a trainer on a CPU (None: ``val_batch_size``), so that one recipe
+            validates in large calls on a GPU and in small ones on a CPU, where a call's activations take the
+            host's memory (two UNet+LSTM runs validating 16 trajectories a call ran a 24 GB machine out of it).
+            Like ``val_batch_size`` it changes the number of calls, never the metrics.
         val_fraction: share of trajectories held out for validation (split by trajectory) when a split is drawn.
         split_seed: seed of the split (and of the batch order).
         split_file: reuse the split recorded in an earlier run's split.json instead of drawing one. Without it, a
@@ -222,11 +226,13 @@ class TrajectoryDataModule(L.LightningDataModule):
         resident: bool | str = "auto",
         time_bucket_steps: int | None = None,
         val_batch_size: int | None = None,
+        cpu_val_batch_size: int | None = None,
     ):
         super().__init__()
         if resident not in (True, False, "auto"):
             raise VitflyError(f"resident: expected true, false or auto, got {resident!r}")
-        sizes = {"batch_size": batch_size, "val_batch_size": 1 if val_batch_size is None else val_batch_size}
+        sizes = {"batch_size": batch_size, "val_batch_size": 1 if val_batch_size is None else val_batch_size,
+                 "cpu_val_batch_size": 1 if cpu_val_batch_size is None else cpu_val_batch_size}
         for name, size in sizes.items():
             if size < 1:
                 raise VitflyError(f"{name}: expected a positive number of trajectories, got {size}")
@@ -235,6 +241,7 @@ class TrajectoryDataModule(L.LightningDataModule):
         self.data_path = data_path
         self.batch_size = batch_size
         self.val_batch_size = val_batch_size or batch_size
+        self.cpu_val_batch_size = cpu_val_batch_size
         self.val_fraction = val_fraction
         self.split_seed = split_seed
         self.split_file = split_file
@@ -433,7 +440,7 @@ class TrajectoryDataModule(L.LightningDataModule):
             batch = self.sensor_randomisation()(batch, self.split_seed, trainer.current_epoch)
         fitting = trainer is not None and (trainer.training or trainer.validating or trainer.sanity_checking)
         if self.time_bucket_steps and fitting:  # test/predict rows stay one per trajectory
-            rows = self.batch_size if trainer.training else self.val_batch_size
+            rows = self.batch_size if trainer.training else self.val_rows()
             batch = pad_to_bucket(batch, self.time_bucket_steps, rows)
         return depth_to_unit_float(batch)
 
@@ -484,7 +491,14 @@ class TrajectoryDataModule(L.LightningDataModule):
     def val_dataloader(self) -> DataLoader | list:
         self._save_split_once()
         val = self._datasets.get("val")
-        return [] if val is None else self._train_val_loader(val, shuffle=False, batch_size=self.val_batch_size)
+        return [] if val is None else self._train_val_loader(val, shuffle=False, batch_size=self.val_rows())
+
+    def val_rows(self) -> int:
+        """Trajectories (or windows) per validation call on the training device: ``cpu_val_batch_size`` on a
+        CPU where it is set, else ``val_batch_size``. The loader and the padding both ask here."""
+        if self.cpu_val_batch_size is not None and self._training_device().type == "cpu":
+            return self.cpu_val_batch_size
+        return self.val_batch_size
 
     def test_dataloader(self) -> DataLoader:
         self._save_split_once()

@@ -53,3 +53,21 @@ def join(run_dir: Path) -> None:
     if earlier.exists():
         merge_metrics([earlier, run_dir / METRICS], run_dir / METRICS)
         earlier.unlink()
+
+
+def epoch_curves(run_dir: Path, columns: tuple[str, ...] = ("train/loss_epoch", "val/loss")) -> dict[str, list]:
+    """Per column, ``[(epoch, value), ...]`` (epochs counted from 1, ascending) of a run's logged epochs, across
+    resumes: ``metrics.earlier.csv`` (a session stopped between ``set_aside`` and ``join``) first, then
+    ``metrics.csv``, a later row of the same epoch winning. Columns never logged give an empty list."""
+    values: dict[str, dict[int, float]] = {c: {} for c in columns}
+    for part in (run_dir / EARLIER_METRICS, run_dir / METRICS):
+        if not part.exists():
+            continue
+        with open(part, newline="") as f:
+            for row in csv.DictReader(f):
+                if not row.get("epoch"):
+                    continue
+                for column in columns:
+                    if row.get(column):
+                        values[column][int(float(row["epoch"])) + 1] = float(row[column])
+    return {c: sorted(v.items()) for c, v in values.items()}

@@ -199,12 +199,16 @@ def train_settings(t: TrainStage, data: str | Path) -> dict:
 # Trainer arguments that change what a run logs, never the weights it trains (the validation loaders draw from
 # a generator of their own: vitfly.datamodules.datamodule), as long as no epoch is chosen by its validation loss
 VALIDATION_ONLY = ("check_val_every_n_epoch",)
+# Data arguments that change how many trajectories a validation call takes, never its metrics (masked means over
+# the valid steps: tests/test_static_shapes.py) nor the weights, so in either select mode
+VALIDATION_BATCHING = ("val_batch_size", "cpu_val_batch_size")
 
 
 def same_settings(recorded: dict | None, wanted: dict) -> bool:
     """A finished run's recorded settings are ``wanted``; a field added to TrainStage since it was recorded counts
-    as its default, so that a new field never retrains the runs finished before it. With ``select: last`` how
-    often a run validated (``VALIDATION_ONLY``) does not count: the weights are the same either way."""
+    as its default, so that a new field never retrains the runs finished before it. How a run batched its
+    validation (``VALIDATION_BATCHING``) does not count, and with ``select: last`` neither does how often it
+    validated (``VALIDATION_ONLY``): the weights are the same either way."""
     if recorded is None:
         return False
     defaults = dataclasses.asdict(TrainStage())
@@ -214,6 +218,8 @@ def same_settings(recorded: dict | None, wanted: dict) -> bool:
 
 def _weights_settings(settings: dict) -> dict:
     """``settings`` less what cannot change the flown weights."""
+    data = {k: v for k, v in (settings.get("data_kwargs") or {}).items() if k not in VALIDATION_BATCHING}
+    settings = {**settings, "data_kwargs": data}
     if settings.get("select") != "last":
         return settings
     trainer = {k: v for k, v in (settings.get("trainer_kwargs") or {}).items() if k not in VALIDATION_ONLY}

@@ -22,6 +22,7 @@ from vitfly.workflows.reproduce_config import (
     train_frames,
     train_stage,
 )
+from vitfly.workflows.training_curves import training_curves_figure
 
 
 def latency_markdown(results: list[dict]) -> str:
@@ -184,6 +185,9 @@ def stage_report(cfg: ReproduceConfig) -> dict:
     paired_png = paper_figures.paired_findings_figure(paired, figures / "paired_findings.png")
     if paired_png is not None:
         files["paired_findings"] = paired_png
+    curves_png = training_curves_figure(cfg, figures / "training_curves.png")
+    if curves_png is not None:
+        files["training_curves"] = curves_png
     text = results_markdown(cfg, findings_markdown(findings), files, ablation_md, latency_md, lateral, paired_md,
                             modular_md, draws_markdown(cfg, rows))
     write_text(out / "results.md", text)
@@ -288,7 +292,8 @@ def results_markdown(cfg: ReproduceConfig, findings_md: str, files: dict[str, Pa
                      draws_md: str = "") -> str:
     e = cfg.evaluate
     rel = {k: os.path.relpath(v, cfg.out_dir) for k, v in files.items()}
-    figure_lines = [f"- {k.replace('_', ' ')}: ![{k}]({v})" for k, v in rel.items()]
+    figure_lines = [f"- {k.replace('_', ' ')}: ![{k}]({v})" for k, v in rel.items()
+                    if k != "training_curves"]  # shown under Training
     lateral_lines = ["| policy | max mean lateral deviation (m) |", "|---|---:|",
                      *(f"| {p} | {v:.2f} |" for p, v in lateral.items())] if lateral else ["(paths not flown)"]
     # the shipped weights were trained elsewhere: their datasets are in the training table, not cfg.data
@@ -328,6 +333,8 @@ def results_markdown(cfg: ReproduceConfig, findings_md: str, files: dict[str, Pa
         "## Training",
         "",
         _training_table(cfg),
+        *([f"![training and validation loss per epoch of every run]({rel['training_curves']})", ""]
+          if "training_curves" in rel else []),
         "## Figures",
         "",
         *figure_lines,

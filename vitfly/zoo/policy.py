@@ -43,6 +43,14 @@ FUSED_ADAM_DEVICES = ("cpu", "cuda")
 COMPILE_MODES = {False: None, True: "default", "default": "default", "reduce-overhead": "reduce-overhead"}
 
 
+def fusable(params) -> bool:
+    """Whether torch's fused Adam may update ``params``: each on a device it has a kernel for, and contiguous.
+    On the CPU (torch 2.15) a parameter in another layout (channels-last) whose moments are contiguous, as every
+    resume from vitfly's checkpoints makes them, gets wrong updates (tests/test_fast_paths.py); the foreach and
+    for-loop kernels are exact there."""
+    return all(p.device.type in FUSED_ADAM_DEVICES and p.is_contiguous() for p in params)
+
+
 def normalised_target(velocity_cmd: torch.Tensor, desired_speed: torch.Tensor) -> torch.Tensor:
     """The label of paper eq. 1: world-frame command (m/s) divided by the desired speed (m/s)."""
     return velocity_cmd / desired_speed.clamp_min(MIN_SPEED_MPS)
@@ -379,6 +387,14 @@ class PolicyModule(L.LightningModule):
         else:
             torch.set_num_threads(self.cpu_threads)
 
+    def on_train_start(self) -> None:
+        # a resumed optimiser takes its groups' settings from the checkpoint, ``fused`` among them: a network
+        # saved contiguous and resumed in another layout would get the fused kernel back (see ``fusable``)
+        for opt in self.trainer.optimizers:
+            for group in opt.param_groups:
+                if group.get("fused") and not fusable(group["params"]):
+                    group["fused"] = None
+
     def on_fit_end(self) -> None:
         if self._thread_tuner is not None:
             self._thread_tuner.restore()
@@ -467,7 +483,7 @@ class PolicyModule(L.LightningModule):
         # one fused kernel for all parameters instead of ~10 small ops per parameter tensor (the profiled
         # CPU step spent ~5 % in Adam's per-tensor ops); same update rule. Not with gradient clipping:
         # Lightning's mixed-precision plugin refuses to clip for an optimiser that unscales internally
-        fused = (not hp.gradient_clip_val and all(p.device.type in FUSED_ADAM_DEVICES for p in params)) or None
+        fused = (not hp.gradient_clip_val and fusable(params)) or None
         return torch.optim.Adam(params, lr=hp.lr * hp.warmup_start_factor, weight_decay=hp.weight_decay, fused=fused)
 
     # -- validation / test / predict ------------------------------------------------------------
