@@ -10,6 +10,8 @@
     restore         here   carry/PRESET/ back into the preset's train/ (a new checkout goes on from it)
     travel light    here   right before a device call: weights/ and docs/ left out of what it sends (room for
                            the runs' states); `travel full` right after it puts them back
+    history         here   what this session's commits (and uncommitted changes) weigh as a submission: a
+                           carry committed more than once a session can pass its limits (carry prints it too)
     study           there  the shipped weights' study (scripts/gpu_study.yaml) -> study.tar.NNN, study.json, run.log
     evaluate        there  `vitfly evaluate` with the flags after `--`, the policy on the card
                            -> eval.tar.NNN, gpu_evaluate.json
@@ -24,7 +26,8 @@ returns 8 files of 16 MiB), its manifest (pieces, SHA-256, contents) inside the 
 joins the pieces, checks them against that manifest and extracts them with the same safe member check. One job
 a file: ``gpu_reproduce.py`` (train, status, the runs' unpack; ``gpu_slots.py``: resume states;
 ``gpu_plan.py``: the next slot; ``gpu_carry.py``: carry and restore; ``gpu_preset.py``: a preset's runs and data;
-``gpu_travel.py``: travel light; ``gpu_squeeze.py``: resume states squeezed for the trip, both ways),
+``gpu_travel.py``: travel light; ``gpu_history.py``: a submission's weight; ``gpu_squeeze.py``: resume
+states squeezed for the trip, both ways),
 ``gpu_study.py``, ``gpu_evaluate.py``, ``gpu_machine.py`` (wheels, setup, pipeline). The old command lines
 keep working: ``scripts/gpu_reproduce.py ARGS`` is ``scripts/gpu.py ARGS``, ``scripts/gpu_study.py ARGS`` is
 ``scripts/gpu.py study ARGS``, ``scripts/gpu_machine.sh fetch|run DIR`` is ``wheels`` / ``pipeline --out DIR``.
@@ -81,12 +84,12 @@ def unpack(args: argparse.Namespace) -> int:
 
 
 def parser() -> tuple[argparse.ArgumentParser, dict]:
-    from scripts import gpu_evaluate, gpu_machine, gpu_reproduce, gpu_study, gpu_travel
+    from scripts import gpu_evaluate, gpu_history, gpu_machine, gpu_reproduce, gpu_study, gpu_travel
 
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0], prog="scripts/gpu.py")
     sub = p.add_subparsers(dest="command", required=True, metavar="COMMAND")
     handlers = {**gpu_machine.add_commands(sub), **gpu_reproduce.add_commands(sub), **gpu_study.add_commands(sub),
-                **gpu_evaluate.add_commands(sub), **gpu_travel.add_commands(sub)}
+                **gpu_evaluate.add_commands(sub), **gpu_travel.add_commands(sub), **gpu_history.add_commands(sub)}
     u = sub.add_parser("unpack", help="here: what a command there brought back (DIR), by what it holds")
     gpu_reproduce.preset_flags(u, required=False)
     u.add_argument("--into", help="a study's or pipeline's folder, or the sweep directory records merge into")

@@ -661,6 +661,10 @@ def status(args: argparse.Namespace) -> int:
         print(f"  every run is done: vitfly reproduce --config {args.config} --preset {cfg.preset} flies them")
     if getattr(args, "write_carry", False):
         write_carry(cfg, rows, slot, carry_dir, room)
+        if carry_dir.resolve().is_relative_to(ROOT):  # the carry is committed with the session's other commits
+            from scripts.gpu_history import report
+
+            report(ROOT)
     if not (slot.carry or slot.start):
         return 0
     here = carry_dir.relative_to(ROOT) if carry_dir.is_relative_to(ROOT) else carry_dir
