@@ -22,6 +22,7 @@ from pathlib import Path
 DIFF_LIMIT = 256 * 2**20  # the diffs of a submission's commits, added up as text
 PACK_LIMIT = 512 * 2**20  # a submission's commits packed as git sends them
 WARN_SHARE = 0.75  # past this share of either limit, carry and history say so
+BINARY_PATCH = 67 / 52  # git's binary patch: 66 base85 characters and a newline per 52 bytes that do not shrink
 
 
 @dataclass
@@ -111,6 +112,25 @@ def report(root: Path, base: str | None = None, with_worktree: bool = True) -> W
         print(f"  near or over the submission's limits ({', '.join(w.over())}): commit a carry once a session, at "
               "its end (every carry committed replaces the last one's states and counts both)")
     return w
+
+
+def slot_outlook(root: Path, out_bytes: int, home_bytes: int) -> None:
+    """Print what committing a slot's carry once it is home adds to the session's diffs: the carried states it
+    replaces (``out_bytes``, in git's history now) and the states expected home (``home_bytes``), both as binary
+    patches; and whether that still fits beside what the session has (its commits and uncommitted changes)."""
+    planned = int(BINARY_PATCH * (out_bytes + home_bytes))
+    try:
+        w = weight(root, session_base(root), with_worktree=True)
+    except SystemExit as err:  # not a git checkout with a history: nothing to weigh against
+        print(f"  the slot's carry, committed when it is home: about {mib(planned)} of diffs ({err})")
+        return
+    total = w.diff_bytes + planned
+    print(f"  the slot's carry, committed once when it is home: about {mib(planned)} of diffs (the states it replaces "
+          f"and the new ones), {mib(total)} of the submission's {mib(DIFF_LIMIT)} with this session's "
+          f"{mib(w.diff_bytes)} so far (python3 scripts/gpu.py history)")
+    if total > WARN_SHARE * DIFF_LIMIT:
+        print("  too close to the limit: commit no other carry this session (the CPU runs' progress stays "
+              "uncommitted), or the whole submission is refused")
 
 
 def add_commands(sub) -> dict:

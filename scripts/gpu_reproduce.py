@@ -616,7 +616,7 @@ def status(args: argparse.Namespace) -> int:
     written into ``carry/<preset>/`` too (``scripts/gpu_carry.py``), the slot's with the moments it plans."""
     from scripts.gpu_carry import other_carries, preset_carry, write_carry
     from scripts.gpu_plan import next_slot, slot_after
-    from scripts.gpu_slots import CARRY_BYTES, mib, travelling_bytes, wheels_reserve
+    from scripts.gpu_slots import CARRY_BYTES, mib, travelling_bytes, tree_bytes, wheels_reserve
     from scripts.gpu_travel import is_light, light_bytes
 
     cfg = load_cfg(args)
@@ -669,7 +669,8 @@ def status(args: argparse.Namespace) -> int:
         return 0
     here = carry_dir.relative_to(ROOT) if carry_dir.is_relative_to(ROOT) else carry_dir
     if slot.carry and not getattr(args, "write_carry", False):
-        print(f"  first, here: python3 scripts/gpu.py carry --preset {cfg.preset} (into {here}/, then commit)")
+        print(f"  first, here: python3 scripts/gpu.py carry --preset {cfg.preset} (into {here}/; the call sends it "
+              "uncommitted: commit the carry once, when the slot is home)")
     data_hash = local_data_hash(cfg) if Path(cfg.data).exists() else "HASH"
     deadline = [f"--deadline-s {args.deadline_s:g}"] if args.deadline_s != DEADLINE_S else []
     flags = [f"--reserve-s {args.reserve_s:g}"] if args.reserve_s != RESERVE_S else []
@@ -693,6 +694,11 @@ def status(args: argparse.Namespace) -> int:
     print("  then at once, while the machine is warm (30 s), a follow-on call for what the lease has left "
           "(timeout_s T: its budget_left_s less 30 s), resuming the runs where the first call left them there:"
           f"\n    {command} --go-on --deadline-s $((T - 10 - SECONDS))")
+    if carry_dir.resolve().is_relative_to(ROOT):  # the carry home again is committed with the session's work
+        from scripts.gpu_history import slot_outlook
+
+        slot_outlook(ROOT, sum(tree_bytes(carry_dir / r.label) for r in slot.carry if (carry_dir / r.label).exists()),
+                     slot.back_bytes)
     after = slot_after(cfg, planned, slot, room, args.carry_moments, args.deadline_s, args.reserve_s)
     if after is not None:  # a finished run is not trained again: the follow-on would have nothing to do
         print("  or, if the first call's report says every run finished, a follow-on that starts the next:\n    "

@@ -68,3 +68,17 @@ def test_a_replaced_state_counts_its_old_bytes_and_its_new(repo):
 def test_the_warning_names_the_limit_passed():
     assert Weight("b", 4, int(0.8 * DIFF_LIMIT), 10 * MIB).over() == ["diffs 204.8 MiB of 256.0 MiB"]
     assert Weight("b", 1, MIB, MIB).over() == []
+
+
+def test_the_slot_outlook_adds_the_states_out_and_in_as_binary_patches(repo, capsys):
+    """A slot that replaces 60 MiB of carried states with 60 MiB more: 120 MiB of bytes as base85 patch text,
+    154.6 MiB, under 75 % of the 256 MiB; with 100 MiB more of each it is not, and the outlook says to commit no
+    other carry."""
+    from scripts.gpu_history import slot_outlook
+
+    root, _ = repo
+    slot_outlook(root, 60 * MIB, 60 * MIB)
+    out = capsys.readouterr().out
+    assert "about 154.6 MiB of diffs" in out and "commit no other carry" not in out
+    slot_outlook(root, 160 * MIB, 160 * MIB)
+    assert "commit no other carry" in capsys.readouterr().out
