@@ -13,7 +13,7 @@ only while the states expected home still fit it: a carried run that will not fi
 slot's epoch time says so) counts with its size, a new run with its state's size estimated from its parameter
 count. A run whose state could never travel (ResNet-18's) starts only alone, and must finish inside the command.
 Runs of ``train.cpu_models`` train on a CPU and are left out, as are runs being trained here (``vitfly
-reproduce`` resumes them).
+reproduce`` resumes them; ``status`` leaves out a run a process here trains now, ``RunState.here_now``).
 """
 
 from __future__ import annotations
@@ -42,6 +42,7 @@ class RunState:
     folder: Path | None = None  # an unfinished run's folder (what the device tool carries)
     size: int = 0  # its bytes
     marker: dict = field(default_factory=dict)  # an unfinished run's resume marker (epochs, max_epochs, epoch_s)
+    here_now: bool = False  # a process here trains it now (vitfly reproduce): no slot takes it
 
     @property
     def label(self) -> str:

@@ -599,7 +599,7 @@ def run_states(cfg) -> list:
             # a restored run that vitfly reproduce took further here: those epochs as one more CPU slot
             marker = caught_up({**json.loads((d / MARKER).read_text()), "max_epochs": n}, d)
             rows.append(RunState(run, "unfinished", f"unfinished: {progress(marker)}{slots_left(marker)}{now}", d,
-                                 tree_bytes(d), marker))
+                                 tree_bytes(d), marker, here_now=holder is not None))
         elif epochs_done(d):
             rows.append(RunState(run, "started here",
                                  f"started here: {epochs_done(d)}/{n} epochs (vitfly reproduce resumes it){now}", d))
@@ -638,7 +638,12 @@ def status(args: argparse.Namespace) -> int:
         tree += reserve
         print(f"  no .whl/ here yet: {mib(reserve)} kept for it (python3 scripts/gpu.py wheels)")
     room = CARRY_BYTES - tree
-    planned = [r for r in rows if r.run.model not in cfg.train.cpu_models or r.state == "not started"]
+    # a run training here now goes on here: a slot takes what nothing here trains (stop it to send it to the card)
+    planned = [r for r in rows if (r.run.model not in cfg.train.cpu_models or r.state == "not started")
+               and not r.here_now]
+    busy = [r.label for r in rows if r.here_now]
+    if busy:
+        print(f"  training here now, so in no slot: {', '.join(busy)} (stop them first to send them to the card)")
     slot = next_slot(cfg, planned, room, args.carry_moments, args.deadline_s, args.reserve_s)
     print(f"next slot carries {len(slot.carry)} unfinished runs, {mib(sum(slot.sizes.values()))} of the "
           f"{mib(room)} a call leaves beside the working tree travelling light and .whl/ ({mib(tree)})"

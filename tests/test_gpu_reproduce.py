@@ -227,6 +227,14 @@ def test_a_run_stopped_in_one_slot_resumes_in_the_next_exactly(tmp_path, data, t
     follow_on = re.search(r"\n +(python3 scripts/gpu\.py train .*) --go-on --deadline-s \$\(\(T - 10 - SECONDS\)\)\n",
                           listing)
     assert follow_on and f"  command: {follow_on.group(1)}\n" in listing  # the first call's, and --go-on
+    holder = Holder(run)  # vitfly reproduce goes on with the unfinished run here: no slot carries it meanwhile
+    try:
+        assert gpu.main(["status", *common, "--run-dir", str(home)]) == 0
+        busy = capsys.readouterr().out
+    finally:
+        holder.release()
+    assert "training here now, so in no slot: vit_lstm-state (stop them first" in busy
+    assert "carries: vit_lstm-state" not in busy and "next slot carries 0 unfinished runs" in busy
 
     # a resume state of other data is refused before anything trains
     bad = tmp_path / "bad" / "vit_lstm-state"
