@@ -19,6 +19,7 @@ import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 
+ROOT = Path(__file__).resolve().parent.parent
 DIFF_LIMIT = 256 * 2**20  # the diffs of a submission's commits, added up as text
 PACK_LIMIT = 512 * 2**20  # a submission's commits packed as git sends them
 WARN_SHARE = 0.75  # past this share of either limit, carry and history say so
@@ -139,8 +140,6 @@ def add_commands(sub) -> dict:
     h.add_argument("--committed", action="store_true", help="the commits alone, not the uncommitted changes")
 
     def history(args) -> int:
-        from scripts.gpu import ROOT
-
         report(ROOT, args.base, with_worktree=not args.committed)
         return 0
 
