@@ -107,8 +107,10 @@ def test_tiny_study_resumes_after_a_kill_in_every_stage(tmp_path):
     assert results["modular"]["replan_latency"]["fastplanner"]["trials"] == 1
     assert "| ConvNet | " in md.split("ViT+LSTM's success minus each policy's in spheres")[1]
     for name in ("spheres_collision_metrics", "trees_collision_metrics", "command_characteristics",
-                 "paths_fixed_scene", "paths_fixed_scene_3d", "window_paths", "modular_baselines", "paired_findings"):
+                 "paths_fixed_scene", "paths_fixed_scene_3d", "window_paths", "modular_baselines", "paired_findings",
+                 "training_curves"):
         assert (out / "figures" / f"{name}.png").stat().st_size > 10_000, name
+    assert "![training and validation loss per epoch of every run](figures/training_curves.png)" in md
     # the state models were published (fp16 safetensors) with their closed-loop numbers
     manifest = read_manifest(tmp_path / "weights")["models"]
     assert sorted(manifest) == ["convnet", "vit_lstm"]
