@@ -18,6 +18,7 @@ Two measurements, each run in a fresh subprocess per sample so that both revisio
   ``--steps`` real steps per trajectory (default 418, the mean flight of the laptop preset's data). In
   ``--modes``: ``recipe`` (the preset as it is), ``eager`` (no compilation), ``unpadded`` (no compilation,
   no padding, no static shapes: the default path), ``fp32`` / ``bf16`` (the recipe in that precision),
+  ``contiguous`` (the recipe with its weights in the default memory layout, where it sets ``channels_last``),
   ``loop`` (the run as the preset trains it, on ``--data``: its TrainStage through ``vitfly.training.train_policy``,
   Lightning, the real flights, the learning-rate schedule and the logging, for ``--fit-batches`` training
   batches after ``--fit-skip`` ones; the step modes time the step alone, so ``recipe`` against ``loop`` in one
@@ -65,7 +66,7 @@ BENCH_DIR = Path(__file__).resolve().parent
 MODES = ("fp32", "bf16", "compiled", "compiled-bf16")
 ALL_MODELS = ("convnet", "lstmnet", "unet_lstm", "vit", "vit_lstm", "resnet18")
 ARMS = {"paper": "paper", "vitfly": "paper_vitfly"}  # --arm -> its preset in configs/reproduce.yaml
-ARM_MODES = ("recipe", "eager", "unpadded", "fp32", "bf16", "loop")
+ARM_MODES = ("recipe", "eager", "unpadded", "fp32", "bf16", "loop", "contiguous")
 MEAN_FLIGHT_STEPS = 418  # the laptop preset's 200 expert flights: 83,681 frames
 FLOP_COUNT_STEPS = 32  # frames of the trajectory the FLOPs are counted on
 # NVIDIA datasheet figures, TFLOP/s: FP32 (CUDA cores, dense), TF32 and BF16 tensor cores as printed "with
@@ -190,6 +191,9 @@ def arm_batch_fn(model: str, policy_kwargs: dict, batch: int, steps: int, bucket
 
     torch.manual_seed(0)
     module = create_policy(model, **policy_kwargs).to(device)
+    layout = policy_kwargs.get("channels_last")
+    if layout is True or (layout == "cpu" and torch.device(device).type == "cpu"):  # as PolicyModule.setup
+        module.net.to(memory_format=torch.channels_last)
     module.train()
     optimizer = module.configure_optimizers()
     data = synthetic_batch(batch, steps, device)
@@ -355,6 +359,8 @@ def arm_settings(arm: str, model: str, mode: str) -> dict:
         os.chdir(cwd)
     kept = ("tbptt_steps", "avoid_weight", "gradient_clip_val", "static_shapes", "compile")
     policy = {k: stage.policy_kwargs[k] for k in kept if k in stage.policy_kwargs}
+    if stage.policy_kwargs.get("channels_last"):  # only where set: a --baseline-rev before it knows no such argument
+        policy["channels_last"] = stage.policy_kwargs["channels_last"]
     bucket = stage.data_kwargs.get("time_bucket_steps")
     precision = "bf16" if "bf16" in str(stage.trainer_kwargs.get("precision", "")) else "fp32"
     if mode in ("eager", "unpadded"):
@@ -363,6 +369,8 @@ def arm_settings(arm: str, model: str, mode: str) -> dict:
         policy["static_shapes"], bucket = False, None
     if mode in ("fp32", "bf16"):
         precision = mode
+    if mode == "contiguous":  # the recipe with its weights in the default layout
+        policy.pop("channels_last", None)
     return {"batch": stage.batch_size, "policy_kwargs": policy, "bucket": bucket, "precision": precision}
 
 

@@ -248,6 +248,31 @@ def test_a_resumed_network_in_another_layout_drops_the_fused_flag(data_path, tmp
     assert seen and set(seen) == {None}
 
 
+def test_channels_last_on_the_cpu_trains_in_that_layout_unfused(data_path, tmp_path):
+    """``channels_last: cpu`` on a CPU trainer: the convolutions' weights train channels-last, with the unfused
+    Adam, and the checkpoint loads into a plain network; ``false`` leaves them contiguous and fused."""
+    from vitfly.zoo import load_network
+
+    for setting, layout, fused in (("cpu", torch.channels_last, None), (False, torch.contiguous_format, True)):
+        torch.manual_seed(0)
+        module = create_policy("convnet", warmup_epochs=0, channels_last=setting)
+        dm = TrajectoryDataModule(data_path, batch_size=2, val_fraction=0.2, resident=False)
+        trainer = quiet_trainer(tmp_path / str(setting), max_epochs=1)
+        trainer.fit(module, datamodule=dm)
+        convs = [p for p in module.net.parameters() if p.dim() == 4]
+        assert convs and all(p.is_contiguous(memory_format=layout) for p in convs)
+        assert trainer.optimizers[0].param_groups[0]["fused"] is fused
+        trainer.save_checkpoint(tmp_path / f"{setting}.ckpt")
+        loaded = load_network(tmp_path / f"{setting}.ckpt")
+        for a, b in zip(module.net.state_dict().values(), loaded.state_dict().values(), strict=True):
+            assert torch.equal(a, b)
+
+
+def test_a_bad_channels_last_is_one_error():
+    with pytest.raises(VitflyError, match="model.channels_last: expected false, true or cpu, got 'gpu'"):
+        create_policy("convnet", channels_last="gpu")
+
+
 # -- torch.compile -------------------------------------------------------------------------------
 
 

@@ -43,7 +43,7 @@ from vitfly.zoo.legacy import read_torch_file
 from vitfly.zoo.policy import PolicyModule, check_policy_arguments, policy_class, register_policy_classes
 
 SUBCOMMANDS = ("fit", "validate", "test", "predict")
-POLICY_CHECKED = ("avoid_weight", "tbptt_steps", "compile", "static_shapes", "cpu_threads")
+POLICY_CHECKED = ("avoid_weight", "tbptt_steps", "compile", "static_shapes", "cpu_threads", "channels_last")
 RUN_ROOT = "runs"  # where runs go when trainer.default_root_dir is not set
 # save_dir "" means "the run directory" (trainer.default_root_dir), filled in before instantiation so
 # that a --trainer.default_root_dir override moves the logs too (YAML interpolation would not)

@@ -39,6 +39,7 @@ CHUNK_KEYS = ("depth", "desired_speed", "quat", "velocity_cmd", "mask")
 R2_AXES = {"lateral": 1, "vertical": 2}  # world y (left), world z (up)
 MIN_SPEED_MPS = 1e-3  # guards the label division; real trajectories fly at >= 1 m/s
 FUSED_ADAM_DEVICES = ("cpu", "cuda")
+CHANNELS_LAST = (False, True, "cpu")  # model.channels_last: never, always, when training on a CPU
 # model.compile: off, torch.compile's default mode, or CUDA graphs (static shapes only)
 COMPILE_MODES = {False: None, True: "default", "default": "default", "reduce-overhead": "reduce-overhead"}
 
@@ -135,6 +136,7 @@ def check_policy_arguments(
     compile: bool | str = False,
     static_shapes: bool = False,
     cpu_threads: int | str | None = "auto",
+    channels_last: bool | str = False,
 ) -> str | None:
     """One error line naming the field for a bad PolicyModule argument (``vitfly fit`` checks its config with
     this before building anything); returns the torch.compile mode (None: no compilation)."""
@@ -143,6 +145,8 @@ def check_policy_arguments(
     )
     if not threads_ok:
         raise VitflyError(f"model.cpu_threads: expected auto, a thread count >= 1 or null, got {cpu_threads!r}")
+    if channels_last not in CHANNELS_LAST:
+        raise VitflyError(f"model.channels_last: expected false, true or cpu, got {channels_last!r}")
     if avoid_weight < 0:
         raise VitflyError(f"model.avoid_weight: expected a weight >= 0, got {avoid_weight}")
     if tbptt_steps is not None and tbptt_steps < 1:
@@ -204,6 +208,11 @@ class PolicyModule(L.LightningModule):
             and with one and keeps the faster, re-measuring every 100 steps (``vitfly.zoo.thread_tuner``:
             on a machine shared with other work one thread can be several times faster); a number fixes
             it; None leaves torch's setting alone.
+        channels_last: train the network's 4-D weights (convolutions) in channels-last memory layout: ``true``,
+            ``cpu`` (only when training on a CPU: the paper arm's UNet+LSTM step ran 1.9x faster so on a
+            2-core AVX512 CPU, docs/performance.md) or ``false``. The same arithmetic in another order (weights
+            within float rounding of the contiguous run's); Adam runs unfused for such weights (``fusable``),
+            checkpoints hold the weights as ever.
     """
 
     default_model = "convnet"
@@ -224,11 +233,13 @@ class PolicyModule(L.LightningModule):
         compile: bool | str = False,
         cpu_threads: int | str | None = "auto",
         static_shapes: bool = False,
+        channels_last: bool | str = False,
     ) -> None:
         super().__init__()
         model = model or type(self).default_model  # resolved before save_hyperparameters records it
         model_kwargs = dict(model_kwargs or {})
-        compile_mode = check_policy_arguments(avoid_weight, tbptt_steps, compile, static_shapes, cpu_threads)
+        compile_mode = check_policy_arguments(avoid_weight, tbptt_steps, compile, static_shapes, cpu_threads,
+                                              channels_last)
         self.save_hyperparameters()
         # LightningCLI records the arguments as given (model=None); checkpoints must name the network
         self.hparams["model"], self.hparams["model_kwargs"] = model, model_kwargs
@@ -245,6 +256,7 @@ class PolicyModule(L.LightningModule):
         self.tbptt_steps = tbptt_steps
         self.gradient_clip_val = gradient_clip_val
         self.cpu_threads = cpu_threads
+        self.channels_last = channels_last
         self._thread_tuner: ThreadTuner | None = None
         self.val_mse = MeanSquaredError()
         self.val_cos = CommandCosine()
@@ -386,6 +398,12 @@ class PolicyModule(L.LightningModule):
             self._thread_tuner = ThreadTuner()
         else:
             torch.set_num_threads(self.cpu_threads)
+
+    def setup(self, stage: str) -> None:
+        # before the strategy builds the optimiser, which must see the layout (``fusable``)
+        on_cpu = self.trainer.strategy.root_device.type == "cpu"
+        if self.channels_last is True or (self.channels_last == "cpu" and on_cpu):
+            self.net.to(memory_format=torch.channels_last)
 
     def on_train_start(self) -> None:
         # a resumed optimiser takes its groups' settings from the checkpoint, ``fused`` among them: a network
