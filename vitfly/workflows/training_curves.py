@@ -2,8 +2,8 @@
 
 Read from every run's ``metrics.csv`` (whole across resumes and GPU slots, ``vitfly.training.metrics_csv``),
 unfinished runs included, so a study in progress shows how far each run has come and whether its validation loss
-still falls. One colour per network; the run with the state input solid, without it dashed; the other training
-draws are left out (their curves are each run's own draw's again, in a thicker bundle).
+still falls. One colour per network; the run with the state input solid, without it dashed. A run's other
+training draws (``train.draws``) are left out: each would draw its run's curve again.
 """
 
 from __future__ import annotations

@@ -209,7 +209,7 @@ class PolicyModule(L.LightningModule):
             on a machine shared with other work one thread can be several times faster); a number fixes
             it; None leaves torch's setting alone.
         channels_last: train the network's 4-D weights (convolutions) in channels-last memory layout: ``true``,
-            ``cpu`` (only when training on a CPU: the paper arm's UNet+LSTM step ran 1.9x faster so on a
+            ``cpu`` (only when training on a CPU: the paper arm's UNet+LSTM step ran 1.99x faster so on a
             2-core AVX512 CPU, docs/performance.md) or ``false``. The same arithmetic in another order (weights
             within float rounding of the contiguous run's); Adam runs unfused for such weights (``fusable``),
             checkpoints hold the weights as ever.
