@@ -73,6 +73,10 @@ def test_paper_arm_trains_the_original_recipe_on_588_flights():
         assert (p["static_shapes"], p["compile"]) == ((True, "reduce-overhead") if graphs else (False, False))
         assert t.data_kwargs["time_bucket_steps"] == (64 if graphs else None)
         assert t.trainer_kwargs["precision"] == ("bf16-mixed" if m.startswith("vit") else "32-true")
+        # a speed path, not the recipe: UNet+LSTM's convolutions channels-last on a CPU, and every CPU run
+        # validates 4 trajectories a call
+        assert p.get("channels_last", False) == ("cpu" if m == "unet_lstm" else False)
+        assert t.data_kwargs["cpu_val_batch_size"] == 4
 
 
 def test_paper_vitfly_arm_shares_the_dataset_and_scales_lr_by_the_square_root_of_the_batch():
