@@ -191,9 +191,11 @@ def arm_batch_fn(model: str, policy_kwargs: dict, batch: int, steps: int, bucket
 
     torch.manual_seed(0)
     module = create_policy(model, **policy_kwargs).to(device)
-    layout = policy_kwargs.get("channels_last")
-    if layout is True or (layout == "cpu" and torch.device(device).type == "cpu"):  # as PolicyModule.setup
-        module.net.to(memory_format=torch.channels_last)
+    if policy_kwargs.get("channels_last"):  # as PolicyModule.setup does in a Lightning run
+        from vitfly.zoo.policy import wants_channels_last
+
+        if wants_channels_last(policy_kwargs["channels_last"], device):
+            module.net.to(memory_format=torch.channels_last)
     module.train()
     optimizer = module.configure_optimizers()
     data = synthetic_batch(batch, steps, device)

@@ -42,12 +42,12 @@ class Weight:
                 if value > WARN_SHARE * limit]
 
 
-def mib(n: int) -> str:
+def mib(n: int) -> str:  # as scripts/gpu_slots.py's, which would bring Lightning into `gpu.py history`
     return f"{n / 2**20:.1f} MiB"
 
 
-def git(root: Path, *args: str, env: dict | None = None, stdin: bytes | None = None) -> str:
-    done = subprocess.run(["git", "-C", str(root), *args], capture_output=True, input=stdin,
+def git(root: Path, *args: str, env: dict | None = None) -> str:
+    done = subprocess.run(["git", "-C", str(root), *args], capture_output=True,
                           env=None if env is None else {**os.environ, **env})
     if done.returncode:
         raise SystemExit(f"git {' '.join(args)}: {done.stderr.decode(errors='replace').strip()}")
@@ -75,20 +75,23 @@ def weight(root: Path, base: str, with_worktree: bool = False) -> Weight:
     if with_worktree:
         head = worktree_commit(root, head)
     commits = git(root, "rev-list", "--reverse", f"{base}..{head}").split()
-    diff = sum(patch_bytes(root, c) for c in commits)
-    pack = subprocess.run(["git", "-C", str(root), "pack-objects", "--revs", "--stdout", "--window=0", "-q"],
-                          input=f"{head}\n^{base}\n".encode(), capture_output=True, check=True).stdout
-    return Weight(base, len(commits), diff, len(pack))
+    # each commit's patch against its first parent, binary files as git's binary patches
+    diff = sum(output_bytes(root, "diff-tree", "-p", "--binary", "--no-renames", "--root", "--first-parent", c)
+               for c in commits)
+    pack = output_bytes(root, "pack-objects", "--revs", "--stdout", "--window=0", "-q", stdin=f"{head}\n^{base}\n")
+    return Weight(base, len(commits), diff, pack)
 
 
-def patch_bytes(root: Path, commit: str) -> int:
-    """The bytes of one commit's patch against its first parent, binary files as git's binary patches."""
-    proc = subprocess.Popen(["git", "-C", str(root), "diff-tree", "-p", "--binary", "--no-renames", "--root",
-                             "--first-parent", commit], stdout=subprocess.PIPE)
+def output_bytes(root: Path, *args: str, stdin: str = "") -> int:
+    """How many bytes ``git args`` writes, counted as they stream (a pack can be hundreds of MiB)."""
+    proc = subprocess.Popen(["git", "-C", str(root), *args], stdin=subprocess.PIPE, stdout=subprocess.PIPE)
+    proc.stdin.write(stdin.encode())
+    proc.stdin.close()
     total = 0
     while chunk := proc.stdout.read(1 << 20):
         total += len(chunk)
-    proc.wait()
+    if proc.wait():
+        raise SystemExit(f"git {' '.join(args)}: exit {proc.returncode}")
     return total
 
 
@@ -115,13 +118,14 @@ def report(root: Path, base: str | None = None, with_worktree: bool = True) -> W
     return w
 
 
-def slot_outlook(root: Path, out_bytes: int, home_bytes: int) -> None:
+def slot_outlook(root: Path, out_bytes: int, home_bytes: int, w: Weight | None = None) -> None:
     """Print what committing a slot's carry once it is home adds to the session's diffs: the carried states it
     replaces (``out_bytes``, in git's history now) and the states expected home (``home_bytes``), both as binary
-    patches; and whether that still fits beside what the session has (its commits and uncommitted changes)."""
+    patches; and whether that still fits beside what the session has (its commits and uncommitted changes: ``w``
+    where ``report`` has just weighed them)."""
     planned = int(BINARY_PATCH * (out_bytes + home_bytes))
     try:
-        w = weight(root, session_base(root), with_worktree=True)
+        w = w or weight(root, session_base(root), with_worktree=True)
     except SystemExit as err:  # not a git checkout with a history: nothing to weigh against
         print(f"  the slot's carry, committed when it is home: about {mib(planned)} of diffs ({err})")
         return

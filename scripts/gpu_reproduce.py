@@ -664,12 +664,15 @@ def status(args: argparse.Namespace) -> int:
               + (" --threads 1, twice side by side (each takes a run the other is not on)" if two else ""))
     if all(r.state == "done" for r in rows):
         print(f"  every run is done: vitfly reproduce --config {args.config} --preset {cfg.preset} flies them")
+    # a carry in this checkout is committed with the session's other commits: what they weigh, once
+    committed_here = carry_dir.resolve().is_relative_to(ROOT)
+    weighed = None
     if getattr(args, "write_carry", False):
         write_carry(cfg, rows, slot, carry_dir, room)
-        if carry_dir.resolve().is_relative_to(ROOT):  # the carry is committed with the session's other commits
+        if committed_here:
             from scripts.gpu_history import report
 
-            report(ROOT)
+            weighed = report(ROOT)
     if not (slot.carry or slot.start):
         return 0
     here = carry_dir.relative_to(ROOT) if carry_dir.is_relative_to(ROOT) else carry_dir
@@ -699,11 +702,11 @@ def status(args: argparse.Namespace) -> int:
     print("  then at once, while the machine is warm (30 s), a follow-on call for what the lease has left "
           "(timeout_s T: its budget_left_s less 30 s), resuming the runs where the first call left them there:"
           f"\n    {command} --go-on --deadline-s $((T - 10 - SECONDS))")
-    if carry_dir.resolve().is_relative_to(ROOT):  # the carry home again is committed with the session's work
+    if committed_here:  # and the slot's carry, home again, joins them
         from scripts.gpu_history import slot_outlook
 
         slot_outlook(ROOT, sum(tree_bytes(carry_dir / r.label) for r in slot.carry if (carry_dir / r.label).exists()),
-                     slot.back_bytes)
+                     slot.back_bytes, weighed)
     after = slot_after(cfg, planned, slot, room, args.carry_moments, args.deadline_s, args.reserve_s)
     if after is not None:  # a finished run is not trained again: the follow-on would have nothing to do
         print("  or, if the first call's report says every run finished, a follow-on that starts the next:\n    "

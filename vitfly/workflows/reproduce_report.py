@@ -22,7 +22,6 @@ from vitfly.workflows.reproduce_config import (
     train_frames,
     train_stage,
 )
-from vitfly.workflows.training_curves import training_curves_figure
 
 
 def latency_markdown(results: list[dict]) -> str:
@@ -128,6 +127,7 @@ def stage_report(cfg: ReproduceConfig) -> dict:
     from vitfly.eval.findings import findings_markdown, paper_findings
     from vitfly.eval.paired_findings import paired_findings
     from vitfly.eval.plots import plot_paths, scene_for_paths
+    from vitfly.workflows.training_curves import training_curves_figure
 
     out, figures = cfg.out_dir, cfg.out_dir / "figures"
     rows: dict[str, list[dict] | None] = {}

@@ -52,6 +52,11 @@ def fusable(params) -> bool:
     return all(p.device.type in FUSED_ADAM_DEVICES and p.is_contiguous() for p in params)
 
 
+def wants_channels_last(setting: bool | str, device: torch.device | str) -> bool:
+    """Whether ``model.channels_last`` (``CHANNELS_LAST``) puts the network in channels-last layout on ``device``."""
+    return setting is True or (setting == "cpu" and torch.device(device).type == "cpu")
+
+
 def normalised_target(velocity_cmd: torch.Tensor, desired_speed: torch.Tensor) -> torch.Tensor:
     """The label of paper eq. 1: world-frame command (m/s) divided by the desired speed (m/s)."""
     return velocity_cmd / desired_speed.clamp_min(MIN_SPEED_MPS)
@@ -401,8 +406,7 @@ class PolicyModule(L.LightningModule):
 
     def setup(self, stage: str) -> None:
         # before the strategy builds the optimiser, which must see the layout (``fusable``)
-        on_cpu = self.trainer.strategy.root_device.type == "cpu"
-        if self.channels_last is True or (self.channels_last == "cpu" and on_cpu):
+        if wants_channels_last(self.channels_last, self.trainer.strategy.root_device):
             self.net.to(memory_format=torch.channels_last)
 
     def on_train_start(self) -> None:
