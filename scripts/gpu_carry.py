@@ -195,8 +195,9 @@ def check_carry(carry_dir: Path) -> dict[str, Path]:
 def write_carry(cfg, rows: list, slot, carry_dir: Path, room: int) -> None:
     """Every run of ``rows`` that trained here into ``carry_dir``: the slot's carried runs with the moments its
     plan chose, the others (they stay here when the call travels light: ``scripts/gpu_travel.py``) with fp32
-    moments. A carried run that is not here (a new checkout not restored) or further along than here stays as it
-    is; each folder is written beside its old one and then replaces it. Says (one line) when the slot's runs
+    moments. A carried run that is not here (a new checkout not restored), further along than here, or restored
+    and not trained since stays as it is (unless the slot needs it lighter: then it says so); each folder is
+    written beside its old one and then replaces it. Says (one line) when the slot's runs
     take more than ``room``, what a call leaves the carry."""
     carried = check_carry(carry_dir)
     written = travelling = 0
@@ -216,6 +217,17 @@ def write_carry(cfg, rows: list, slot, carry_dir: Path, room: int) -> None:
         if r.folder is None:
             continue
         moments = slot.moments.get(r.label, "fp32")
+        if old is not None and r.state != "done" and carried_epochs(old) == here:
+            # restored and not trained since: written again it would cost a commit the old bytes and the new
+            had = json.loads((old / MARKER).read_text()).get("carried_moments", "fp32")
+            if moments == had or moments == "fp32":  # fp32 would hold bf16's rounded values no better
+                written += tree_bytes(old)
+                travelling += tree_bytes(old) if r.label in slot.moments else 0
+                print(f"  kept as it was: {r.label} (has not trained since it was carried, {had} moments)")
+                continue
+            print(f"  {r.label}: has not trained since it was carried with {had} moments, written again with "
+                  f"{moments} for the slot's room (an inexact resume): commit it only once the slot has trained "
+                  f"it; git checkout -- {carry_dir / r.label} puts the carried one back")
         tmp = carry_dir / f".{r.label}.writing"
         shutil.rmtree(tmp, ignore_errors=True)
         size = park(cfg, r, tmp, moments)

@@ -457,6 +457,47 @@ def test_runs_outlive_the_session_in_the_carry(tmp_path, data, two_epochs, capsy
     assert not (tmp_path / "fourth" / "train").exists()
 
 
+def test_a_restored_run_that_did_not_train_is_carried_as_it_was(tmp_path, data, two_epochs, capsys, code_tree):
+    """``carry`` in a session that restored a run and did not train it writes nothing new for it (a commit would
+    weigh its old bytes and its new): kept byte for byte, its marker's moments as carried, unless the slot's plan
+    needs lighter moments, which it says."""
+    gpu = load_script("gpu")
+    common = ["--config", str(two_epochs), "--preset", "tiny", "--data", str(data)]
+    cfg = load_reproduce_config(two_epochs, "tiny", {"data": str(data)})
+    carry, kept = tmp_path / "carry", tmp_path / "carry" / "tiny" / "convnet-nostate"
+
+    def carry_from(run_dir: str, *flags: str) -> str:
+        capsys.readouterr()
+        assert gpu.main(["carry", *common, "--run-dir", str(tmp_path / run_dir), "--carry-dir", str(carry),
+                         *flags]) == 0
+        return capsys.readouterr().out
+
+    def restore_to(run_dir: str) -> None:
+        assert gpu.main(["restore", *common, "--run-dir", str(tmp_path / run_dir), "--carry-dir", str(carry)]) == 0
+
+    def carried() -> dict:
+        return {p: p.read_bytes() for p in kept.rglob("*") if p.is_file()}
+
+    stop_after_one_epoch(cfg, "convnet-nostate", data, tmp_path / "home" / "train" / "convnet-nostate")
+    assert "kept: convnet-nostate (unfinished, fp32 moments)" in carry_from("home")
+    before = carried()
+    restore_to("new")
+    # planned into the slot with fp32 moments (they fit): the carried folder stays, byte for byte
+    assert "kept as it was: convnet-nostate (has not trained since it was carried, fp32 moments)" in carry_from("new")
+    assert carried() == before
+    # a slot planned with bf16 moments needs it lighter: written again, and said so
+    assert ("convnet-nostate: has not trained since it was carried with fp32 moments, written again with bf16 for "
+            "the slot's room") in carry_from("new", "--carry-moments", "bf16")
+    assert json.loads((kept / "unfinished.json").read_text())["carried_moments"] == "bf16"
+    before = carried()
+    # restored with bf16 moments and asked for exact ones: it stays bf16, as its marker says (fp32 would hold the
+    # same rounded values and a marker claiming an exact resume)
+    restore_to("newer")
+    assert "kept as it was: convnet-nostate (has not trained since it was carried, bf16 moments)" in carry_from(
+        "newer", "--carry-moments", "fp32")
+    assert carried() == before
+
+
 def test_a_follow_on_call_on_the_warm_machine_goes_on_from_its_run_folders(tmp_path, data, two_epochs, capsys):
     """What a lease leaves after the first 10-minute call trains on in a second call on the still-warm machine:
     ``--go-on`` resumes each run from the first call's run folder there (its full state, exact), not from the
