@@ -641,7 +641,7 @@ def status(args: argparse.Namespace) -> int:
     # a run training here now goes on here: a slot takes what nothing here trains (stop it to send it to the card)
     planned = [r for r in rows if (r.run.model not in cfg.train.cpu_models or r.state == "not started")
                and not r.here_now]
-    busy = [r.label for r in rows if r.here_now]
+    busy = [r.label for r in rows if r.here_now and r.run.model not in cfg.train.cpu_models]
     if busy:
         print(f"  training here now, so in no slot: {', '.join(busy)} (stop them first to send them to the card)")
     slot = next_slot(cfg, planned, room, args.carry_moments, args.deadline_s, args.reserve_s)

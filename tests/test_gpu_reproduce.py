@@ -235,6 +235,18 @@ def test_a_run_stopped_in_one_slot_resumes_in_the_next_exactly(tmp_path, data, t
         holder.release()
     assert "training here now, so in no slot: vit_lstm-state (stop them first" in busy
     assert "carries: vit_lstm-state" not in busy and "next slot carries 0 unfinished runs" in busy
+    # a run of train.cpu_models goes in no slot anyway: nothing to stop, nothing said
+    config = yaml.safe_load(two_epochs.read_text())
+    config["presets"]["tiny"]["train"]["cpu_models"] = ["vit_lstm"]
+    cpu_vit = tmp_path / "cpu_vit_lstm.yaml"
+    cpu_vit.write_text(yaml.safe_dump(config))
+    holder = Holder(run)
+    try:
+        assert gpu.main(["status", "--config", str(cpu_vit), *common[2:], "--run-dir", str(home)]) == 0
+        busy = capsys.readouterr().out
+    finally:
+        holder.release()
+    assert "training here now (pid" in busy and "so in no slot" not in busy and "carries: vit_lstm-state" not in busy
 
     # a resume state of other data is refused before anything trains
     bad = tmp_path / "bad" / "vit_lstm-state"
