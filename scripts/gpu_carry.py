@@ -221,8 +221,9 @@ def write_carry(cfg, rows: list, slot, carry_dir: Path, room: int) -> None:
             # restored and not trained since: written again it would cost a commit the old bytes and the new
             had = json.loads((old / MARKER).read_text()).get("carried_moments", "fp32")
             if moments == had or moments == "fp32":  # fp32 would hold bf16's rounded values no better
-                written += tree_bytes(old)
-                travelling += tree_bytes(old) if r.label in slot.moments else 0
+                size = tree_bytes(old)
+                written += size
+                travelling += size if r.label in slot.moments else 0
                 print(f"  kept as it was: {r.label} (has not trained since it was carried, {had} moments)")
                 continue
             print(f"  {r.label}: has not trained since it was carried with {had} moments, written again with "
