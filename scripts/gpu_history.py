@@ -96,12 +96,15 @@ def output_bytes(root: Path, *args: str, stdin: str = "") -> int:
 
 
 def worktree_commit(root: Path, head: str) -> str:
-    """A commit object (no branch moves) of the working tree as ``git add -A`` would stage it on ``head``."""
+    """A commit object (no branch moves) of the working tree as ``git add -A`` would stage it on ``head``; ``head``
+    itself when that changes nothing."""
     with tempfile.TemporaryDirectory() as tmp:
         env = {"GIT_INDEX_FILE": str(Path(tmp) / "index")}
         git(root, "read-tree", head, env=env)
         git(root, "add", "-A", env=env)
         tree = git(root, "write-tree", env=env).strip()
+    if tree == git(root, "rev-parse", f"{head}^{{tree}}").strip():
+        return head  # a clean tree: no commit to count
     return git(root, "commit-tree", tree, "-p", head, "-m", "the working tree, weighed").strip()
 
 

@@ -63,6 +63,9 @@ def test_a_replaced_state_counts_its_old_bytes_and_its_new(repo):
     assert weight(root, base, with_worktree=True).diff_bytes == pytest.approx(5 * MIB * BASE85, rel=0.01)
     assert git("status", "--porcelain") == "M last.bin"  # nothing staged or committed by the weighing
     assert git("rev-list", "--count", "HEAD") == "3"
+    # a clean working tree adds no commit: the count is the commits' own
+    git("checkout", "--", "last.bin")
+    assert weight(root, base, with_worktree=True) == w
 
 
 def test_the_warning_names_the_limit_passed():
