@@ -110,11 +110,12 @@ def evaluate(args: argparse.Namespace) -> int:
 
 
 def unpack(src: Path, into: Path, plots: bool = True) -> int:
-    """Here: the returned records merged into the sweep directory ``into`` and its reports written; returns the
-    number of new trials."""
+    """Here: the returned records merged into the sweep directory (or published folder) ``into`` and its reports
+    written under their title; returns the number of new trials."""
     from scripts.gpu_pack import fresh_dir
     from scripts.gpu_pack import unpack as unpack_pieces
     from vitfly.eval.evaluation import merge_into, write_outputs
+    from vitfly.eval.report import summary_title
 
     tmp = fresh_dir(into.parent / f".{into.name}.gpu_unpack")
     try:
@@ -125,7 +126,7 @@ def unpack(src: Path, into: Path, plots: bool = True) -> int:
         new = merge_into(into, [tmp / "eval"])
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
-    _, files = write_outputs(into, plots)
+    _, files = write_outputs(into, plots, title=summary_title(into))
     print(f"{into}: merged {new} new trials; wrote " + ", ".join(str(p) for p in files.values()))
     return new
 

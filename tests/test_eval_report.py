@@ -269,6 +269,47 @@ def test_a_published_outcomes_file_alone_gives_the_same_reports(tmp_path):
         write_outputs(tmp_path / "empty")
 
 
+def test_a_sweep_merges_into_a_published_folder_keeping_its_title(tmp_path, capsys):
+    """``vitfly evaluate --out <published> --merge <sweep>``: the new policy's records join the outcomes file
+    without their paths, and the reports are those of one sweep that flew both policies, under the old title."""
+    import gzip
+
+    from vitfly.cli import main
+    from vitfly.eval.evaluation import write_outputs
+
+    both, flown, published = tmp_path / "both", tmp_path / "flown", tmp_path / "published"
+    for folder, recs in ((both, sweep("expert") + sweep("convnet")), (flown, sweep("convnet")),
+                         (published, sweep("expert"))):
+        folder.mkdir()
+        for rec in recs:
+            records.append_record(folder / "trials.jsonl", rec)
+    expected = write_outputs(both, with_plots=False, title="reproduce (paper): spheres")[1]
+    write_outputs(published, with_plots=False, title="reproduce (paper): spheres")
+    (published / "trials.jsonl").unlink()  # what a results page commits: the outcomes file and the tables
+
+    assert main(["evaluate", "--out", str(published), "--merge", str(flown), "--no-plots"]) == 0
+    assert f"{published}: merged 6 new trials" in capsys.readouterr().out
+    assert not list(published.glob("trials*.jsonl"))
+    for key, name in (("outcomes", "outcomes.jsonl.gz"), ("csv", "summary.csv"), ("markdown", "summary.md"),
+                      ("paired", "paired.csv")):
+        assert (published / name).read_bytes() == expected[key].read_bytes(), name
+    lines = gzip.decompress((published / "outcomes.jsonl.gz").read_bytes()).decode().splitlines()
+    assert len(lines) == 12 and all('"position"' not in line for line in lines)  # 6 + 6, no paths
+    # merging again adds nothing and leaves the bytes alone
+    before = (published / "outcomes.jsonl.gz").stat().st_mtime_ns
+    assert main(["evaluate", "--out", str(published), "--merge", str(flown), "--no-plots"]) == 0
+    assert f"{published}: merged 0 new trials" in capsys.readouterr().out
+    assert (published / "outcomes.jsonl.gz").stat().st_mtime_ns == before
+    # a label flown with another setup: one line, the published folder untouched
+    other = tmp_path / "other"
+    other.mkdir()
+    records.append_record(other / "trials.jsonl",
+                          make_record("convnet", "spheres", 7.0, 0, setup=make_setup(policy_id="b" * 16)))
+    assert main(["evaluate", "--out", str(published), "--merge", str(other), "--no-plots"]) == 2
+    assert "convnet" in capsys.readouterr().err
+    assert (published / "outcomes.jsonl.gz").stat().st_mtime_ns == before
+
+
 def test_reports_are_written_again_only_when_their_inputs_change(tmp_path, monkeypatch):
     from vitfly.eval.evaluation import REPORTS_STAMP, write_outputs
 

@@ -61,7 +61,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--no-plots", action="store_true", help="skip the plots")
     parser.add_argument("--wandb-project", help="also log the summary and plots to this wandb project")
     parser.add_argument("--merge", nargs="+", metavar="DIR",
-                        help="only merge the trials of these sweep directories into --out and write its reports")
+                        help="only merge the trials of these directories into --out and write its reports (into a "
+                             "published folder, its outcomes.jsonl.gz alone, without their paths)")
     parser.add_argument("--report-only", action="store_true",
                         help="only (re)write the reports of --out (from its trials*.jsonl, else its outcomes.jsonl.gz)")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
@@ -84,7 +85,7 @@ def run(args: argparse.Namespace) -> int:
     from vitfly.errors import VitflyError
     from vitfly.eval.evaluation import merge_into, run_evaluation, write_outputs
     from vitfly.eval.policy_source import PolicySource
-    from vitfly.eval.report import print_table
+    from vitfly.eval.report import print_table, summary_title
     from vitfly.eval.sensor import resolve_sensor
     from vitfly.sim.sensor_models import sensor_flag_values
 
@@ -113,7 +114,7 @@ def run(args: argparse.Namespace) -> int:
     if args.merge or args.report_only:
         if args.merge:
             print(f"{cfg.out}: merged {merge_into(cfg.out, args.merge)} new trials")
-        rows, files = write_outputs(cfg.out, cfg.plots)
+        rows, files = write_outputs(cfg.out, cfg.plots, title=summary_title(cfg.out))
     else:
         result = run_evaluation(cfg, progress=not args.no_progress)
         rows, files = result.rows, result.files

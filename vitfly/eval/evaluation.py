@@ -126,22 +126,33 @@ def depth_gif(cfg: SweepConfig, source: PolicySource | None = None, identity: Sw
 
 
 def merge_into(out_dir: str | Path, sources: Sequence[str | Path]) -> int:
-    """Copy the records of other sweep directories (e.g. shards run elsewhere) into ``out_dir``; returns
-    how many were new. Refused, before anything is written, if a label would then hold two setups."""
-    have = records.read_sweep(out_dir)
+    """Copy the records of other directories (e.g. shards run elsewhere) into ``out_dir``; returns how many were
+    new (a key ``out_dir`` holds keeps its record). Refused, before anything is written, if a label would then
+    hold two setups.
+
+    Into a sweep directory the sources are sweep directories (their records keep their paths). Into a published
+    table (``records.only_outcomes``: an ``outcomes.jsonl.gz`` alone) any source joins, without its paths: the
+    outcomes file is written again with every record, as a results page commits it."""
+    published = records.only_outcomes(out_dir)
+    have = records.read_report_records(out_dir)
     keys = {r.key for r in have}
     new = []
     for src in sources:
         if not Path(src).is_dir():
             raise VitflyError(f"--merge {src}: not a directory of trials*.jsonl")
-        if records.only_outcomes(src):
+        if records.only_outcomes(src) and not published:
             raise VitflyError(f"--merge {src}: holds only {records.OUTCOMES_FILE} (records without their paths); "
-                              "merge sweep directories, or read it with vitfly.eval.records.read_records")
-        for rec in records.read_sweep(src):
+                              "merge sweep directories, or merge into a published folder (its "
+                              f"{records.OUTCOMES_FILE} alone)")
+        for rec in records.read_report_records(src):
             if rec.key not in keys:
                 new.append(rec)
                 keys.add(rec.key)
     records.check_consistent([*have, *new], f"--merge into {out_dir}")
+    if published:
+        if new:
+            records.write_outcomes(Path(out_dir) / records.OUTCOMES_FILE, [*have, *new])
+        return len(new)
     for rec in new:
         records.append_record(Path(out_dir) / records.TRIALS_FILE, rec)
     return len(new)

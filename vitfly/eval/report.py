@@ -104,6 +104,14 @@ def print_table(rows: Sequence[dict], title: str = "closed-loop evaluation") -> 
     Console(width=max(Console().width, 200)).print(table)  # logs and pipes get the full table
 
 
+def summary_title(out_dir: str | Path) -> str | None:
+    """The title ``summary.md`` in ``out_dir`` was written with (``summary_markdown``), or None: reports written
+    again keep it."""
+    path = Path(out_dir) / "summary.md"
+    first = path.read_text().partition("\n")[0] if path.exists() else ""
+    return first[3:] if first.startswith("## ") else None
+
+
 def write_reports(out_dir: str | Path, rows: Sequence[dict], title: str | None = None) -> dict[str, Path]:
     """Write ``summary.csv`` and ``summary.md`` into ``out_dir`` (each atomically); return their paths."""
     out = Path(out_dir)
