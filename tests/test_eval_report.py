@@ -310,6 +310,17 @@ def test_a_sweep_merges_into_a_published_folder_keeping_its_title(tmp_path, caps
     assert (published / "outcomes.jsonl.gz").stat().st_mtime_ns == before
 
 
+def test_summary_title_reads_back_the_title_reports_were_written_with(tmp_path):
+    from vitfly.eval.report import summary_title
+
+    rows = summarize(sweep("expert"))
+    assert summary_title(tmp_path) is None  # no summary.md yet
+    write_reports(tmp_path, rows, "reproduce (paper): trees")
+    assert summary_title(tmp_path) == "reproduce (paper): trees"
+    write_reports(tmp_path, rows)  # untitled, as the ablation folders
+    assert summary_title(tmp_path) is None
+
+
 def test_reports_are_written_again_only_when_their_inputs_change(tmp_path, monkeypatch):
     from vitfly.eval.evaluation import REPORTS_STAMP, write_outputs
 
