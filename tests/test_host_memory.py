@@ -38,12 +38,36 @@ glibc_only = pytest.mark.skipif(
 )
 
 
-def faults_of_reuse(setup: str, **env: str) -> int:
-    clean = {k: v for k, v in os.environ.items()
-             if k not in ("VITFLY_MALLOC", "GLIBC_TUNABLES", "MALLOC_MMAP_THRESHOLD_", "MALLOC_TRIM_THRESHOLD_")}
-    out = subprocess.run([sys.executable, "-c", CHILD.format(setup=setup)], env={**clean, **env},
+# malloc a 1.25 GiB block without touching it (no page is faulted in) and print the bytes glibc mapped on their
+# own for it (mallinfo2's hblkhd, glibc >= 2.33): above vitfly's former 1 GiB mmap threshold, as single feature maps of
+# the vitfly arm's 64-trajectory batches are
+BIG_BYTES = 5 << 28
+BIG_CHILD = textwrap.dedent(f"""
+    import ctypes
+    {{setup}}
+    class Mallinfo2(ctypes.Structure):
+        _fields_ = [(name, ctypes.c_size_t) for name in
+                    "arena ordblks smblks hblks hblkhd usmblks fsmblks uordblks fordblks keepcost".split()]
+    libc = ctypes.CDLL(None)
+    libc.malloc.restype = ctypes.c_void_p
+    libc.mallinfo2.restype = Mallinfo2
+    before = libc.mallinfo2().hblkhd  # blocks mapped while Python started
+    block = libc.malloc({BIG_BYTES})
+    assert block
+    print(libc.mallinfo2().hblkhd - before)
+""")
+OWN_KNOBS = ("VITFLY_MALLOC", "GLIBC_TUNABLES", "MALLOC_MMAP_THRESHOLD_", "MALLOC_TRIM_THRESHOLD_", "MALLOC_MMAP_MAX_")
+
+
+def run_child(child: str, setup: str, **env: str) -> int:
+    clean = {k: v for k, v in os.environ.items() if k not in OWN_KNOBS}
+    out = subprocess.run([sys.executable, "-c", child.format(setup=setup)], env={**clean, **env},
                          capture_output=True, text=True, check=True).stdout
     return int(out.split()[-1])
+
+
+def faults_of_reuse(setup: str, **env: str) -> int:
+    return run_child(CHILD, setup, **env)
 
 
 @glibc_only
@@ -59,13 +83,21 @@ def test_a_freed_block_is_reused_without_page_faults():
 
 
 @glibc_only
+def test_a_block_of_gigabytes_comes_from_the_heap():
+    keep = "from vitfly.host_memory import keep_freed_memory; assert keep_freed_memory()"
+    as_glibc_comes = "from vitfly.host_memory import keep_freed_memory; assert not keep_freed_memory()"
+    assert run_child(BIG_CHILD, as_glibc_comes, VITFLY_MALLOC="default") >= BIG_BYTES  # its own mapping
+    assert run_child(BIG_CHILD, keep) == 0  # none mapped on its own: freed, it stays in the heap
+
+
+@glibc_only
 def test_the_cli_keeps_freed_memory():
     setup = "from vitfly.cli import main; main(['configs'])"
     assert faults_of_reuse(setup) < PAGES // 100
 
 
 def test_why_not(monkeypatch):
-    for key in ("VITFLY_MALLOC", "GLIBC_TUNABLES", "MALLOC_MMAP_THRESHOLD_", "MALLOC_TRIM_THRESHOLD_"):
+    for key in OWN_KNOBS:
         monkeypatch.delenv(key, raising=False)
     monkeypatch.setattr(platform, "system", lambda: "Linux")
     monkeypatch.setattr(platform, "libc_ver", lambda: ("glibc", "2.36"))
@@ -78,6 +110,9 @@ def test_why_not(monkeypatch):
     monkeypatch.setenv("MALLOC_TRIM_THRESHOLD_", "0")
     assert host_memory.why_not() == "the environment sets glibc's malloc thresholds"
     monkeypatch.delenv("MALLOC_TRIM_THRESHOLD_")
+    monkeypatch.setenv("MALLOC_MMAP_MAX_", "65536")
+    assert host_memory.why_not() == "the environment sets glibc's malloc thresholds"
+    monkeypatch.delenv("MALLOC_MMAP_MAX_")
     monkeypatch.setenv("VITFLY_MALLOC", "Default")
     assert host_memory.why_not() == "VITFLY_MALLOC=default"
     monkeypatch.delenv("VITFLY_MALLOC")

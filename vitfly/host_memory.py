@@ -5,13 +5,16 @@ fresh ``mmap`` and gives it back to the kernel on ``free``; it also hands the he
 trim threshold. A training step on a CPU allocates and frees the same large activations every step (one
 418-frame trajectory through UNet+LSTM makes feature maps of hundreds of MiB), so every step the kernel maps
 them, zero-fills each 4 KiB page on first touch and unmaps them again: about 160,000 page faults a second and
-nearly half of the CPU's time in the kernel, measured. With both thresholds at 1 GiB the freed blocks stay in
-the heap and the next step reuses them (``benchmarks/cpu_allocator.py`` measures the difference per model).
+nearly half of the CPU's time in the kernel, measured. vitfly turns glibc's ``mmap`` off for ``malloc``
+(every block comes from the heap, whatever its size: a vitfly-arm batch of 64 trajectories makes single
+feature maps above 1 GiB, and an mmap threshold, an ``int``, stops below 2 GiB) and never trims the heap, so
+freed blocks stay there and the next step reuses them (``benchmarks/cpu_allocator.py`` measures the
+difference per model).
 
-The price: a process keeps its peak heap (up to 1 GiB of it free) instead of returning it, which suits a
-process that trains or flies until it ends. Nothing changes where the C library is not glibc, where the user
-set glibc's own knobs (``GLIBC_TUNABLES`` naming malloc, or ``MALLOC_MMAP_THRESHOLD_`` /
-``MALLOC_TRIM_THRESHOLD_``), or with ``VITFLY_MALLOC=default``.
+The price: a process keeps its peak heap instead of returning it, which suits a process that trains or flies
+until it ends. Nothing changes where the C library is not glibc, where the user set glibc's own knobs
+(``GLIBC_TUNABLES`` naming malloc, or ``MALLOC_MMAP_THRESHOLD_`` / ``MALLOC_TRIM_THRESHOLD_`` /
+``MALLOC_MMAP_MAX_``), or with ``VITFLY_MALLOC=default``.
 """
 
 from __future__ import annotations
@@ -20,10 +23,11 @@ import ctypes
 import os
 import platform
 
-KEEP_BYTES = 1 << 30  # both thresholds: blocks below it come from the heap and freed ones stay there
 OPT_OUT = "VITFLY_MALLOC"  # =default: leave glibc's allocator as it is
 _M_TRIM_THRESHOLD = -1  # mallopt parameters, glibc's <malloc.h>
-_M_MMAP_THRESHOLD = -3
+_M_MMAP_MAX = -4
+_NEVER = -1  # M_TRIM_THRESHOLD -1: never trim (mallopt(3))
+_ENV_KNOBS = ("MALLOC_MMAP_THRESHOLD_", "MALLOC_TRIM_THRESHOLD_", "MALLOC_MMAP_MAX_")
 _applied: bool | None = None  # the outcome of the first call (the setting is process-wide, made once)
 
 
@@ -33,23 +37,21 @@ def why_not() -> str | None:
         return f"{OPT_OUT}=default"
     if platform.system() != "Linux" or platform.libc_ver()[0] != "glibc":
         return "not glibc on Linux"
-    if "malloc" in os.environ.get("GLIBC_TUNABLES", "") or any(
-        k in os.environ for k in ("MALLOC_MMAP_THRESHOLD_", "MALLOC_TRIM_THRESHOLD_")
-    ):
+    if "malloc" in os.environ.get("GLIBC_TUNABLES", "") or any(k in os.environ for k in _ENV_KNOBS):
         return "the environment sets glibc's malloc thresholds"
     return None
 
 
 def keep_freed_memory() -> bool:
-    """Raise glibc's mmap and trim thresholds to :data:`KEEP_BYTES` for this process (and children it forks
-    from now on); True where they are raised. Safe to call more than once."""
+    """Serve every block of this process (and of children it forks from now on) from glibc's heap and never
+    trim it; True where that is set. Safe to call more than once."""
     global _applied
     if _applied is None:
         _applied = False
         if why_not() is None:
             libc = ctypes.CDLL(None)  # the process's own symbols: glibc's mallopt among them
-            # mallopt returns 1 on success; a refused value leaves that threshold as it was
-            mmap_ok = libc.mallopt(_M_MMAP_THRESHOLD, KEEP_BYTES)
-            trim_ok = libc.mallopt(_M_TRIM_THRESHOLD, KEEP_BYTES)
+            # mallopt returns 1 on success; a refused value leaves that setting as it was
+            mmap_ok = libc.mallopt(_M_MMAP_MAX, 0)  # no block mapped on its own, so none unmapped on free
+            trim_ok = libc.mallopt(_M_TRIM_THRESHOLD, _NEVER)
             _applied = mmap_ok == 1 and trim_ok == 1
     return _applied
