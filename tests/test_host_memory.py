@@ -39,8 +39,7 @@ glibc_only = pytest.mark.skipif(
 
 
 # malloc a 1.25 GiB block without touching it (no page is faulted in) and print the bytes glibc mapped on their
-# own for it (mallinfo2's hblkhd, glibc >= 2.33): above vitfly's former 1 GiB mmap threshold, as single feature maps of
-# the vitfly arm's 64-trajectory batches are
+# own for it (mallinfo2's hblkhd, glibc >= 2.33): above vitfly's former 1 GiB mmap threshold
 BIG_BYTES = 5 << 28
 BIG_CHILD = textwrap.dedent(f"""
     import ctypes

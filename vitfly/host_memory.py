@@ -6,10 +6,10 @@ trim threshold. A training step on a CPU allocates and frees the same large acti
 418-frame trajectory through UNet+LSTM makes feature maps of hundreds of MiB), so every step the kernel maps
 them, zero-fills each 4 KiB page on first touch and unmaps them again: about 160,000 page faults a second and
 nearly half of the CPU's time in the kernel, measured. vitfly turns glibc's ``mmap`` off for ``malloc``
-(every block comes from the heap, whatever its size: a vitfly-arm batch of 64 trajectories makes single
-feature maps above 1 GiB, and an mmap threshold, an ``int``, stops below 2 GiB) and never trims the heap, so
-freed blocks stay there and the next step reuses them (``benchmarks/cpu_allocator.py`` measures the
-difference per model).
+(every block comes from the heap, whatever its size) and never trims the heap, so freed blocks stay there and
+the next step reuses them: a vitfly-arm step of 64 trajectories holds several GiB of activations, more than
+any threshold keeps (one set through ``mallopt`` is an ``int``, below 2 GiB). ``benchmarks/cpu_allocator.py``
+measures the difference per model.
 
 The price: a process keeps its peak heap instead of returning it, which suits a process that trains or flies
 until it ends. Nothing changes where the C library is not glibc, where the user set glibc's own knobs
