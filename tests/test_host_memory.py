@@ -55,6 +55,10 @@ BIG_CHILD = textwrap.dedent(f"""
     assert block
     print(libc.mallinfo2().hblkhd - before)
 """)
+# the setup lines of a child: vitfly's setting, or glibc as it comes
+KEEP = "from vitfly.host_memory import keep_freed_memory; assert keep_freed_memory()"
+# under VITFLY_MALLOC=default
+AS_GLIBC_COMES = "from vitfly.host_memory import keep_freed_memory; assert not keep_freed_memory()"
 OWN_KNOBS = ("VITFLY_MALLOC", "GLIBC_TUNABLES", "MALLOC_MMAP_THRESHOLD_", "MALLOC_TRIM_THRESHOLD_", "MALLOC_MMAP_MAX_")
 
 
@@ -71,9 +75,8 @@ def faults_of_reuse(setup: str, **env: str) -> int:
 
 @glibc_only
 def test_a_freed_block_is_reused_without_page_faults():
-    kept = faults_of_reuse("from vitfly.host_memory import keep_freed_memory; assert keep_freed_memory()")
-    mapped_afresh = faults_of_reuse("from vitfly.host_memory import keep_freed_memory; "
-                                    "assert not keep_freed_memory()", VITFLY_MALLOC="default")
+    kept = faults_of_reuse(KEEP)
+    mapped_afresh = faults_of_reuse(AS_GLIBC_COMES, VITFLY_MALLOC="default")
     # glibc as it comes maps the second block afresh: a fault per 4 KiB page (per 2 MiB page under the
     # kernel's THP 'always'); kept, the freed block is reused and its pages are already there
     assert mapped_afresh > PAGES // 1000  # 2 MiB pages where the kernel's THP is 'always'
@@ -83,10 +86,8 @@ def test_a_freed_block_is_reused_without_page_faults():
 
 @glibc_only
 def test_a_block_of_gigabytes_comes_from_the_heap():
-    keep = "from vitfly.host_memory import keep_freed_memory; assert keep_freed_memory()"
-    as_glibc_comes = "from vitfly.host_memory import keep_freed_memory; assert not keep_freed_memory()"
-    assert run_child(BIG_CHILD, as_glibc_comes, VITFLY_MALLOC="default") >= BIG_BYTES  # its own mapping
-    assert run_child(BIG_CHILD, keep) == 0  # none mapped on its own: freed, it stays in the heap
+    assert run_child(BIG_CHILD, AS_GLIBC_COMES, VITFLY_MALLOC="default") >= BIG_BYTES  # its own mapping
+    assert run_child(BIG_CHILD, KEEP) == 0  # none mapped on its own: freed, it stays in the heap
 
 
 @glibc_only
