@@ -38,7 +38,7 @@ def why_not() -> str | None:
     if platform.system() != "Linux" or platform.libc_ver()[0] != "glibc":
         return "not glibc on Linux"
     if "malloc" in os.environ.get("GLIBC_TUNABLES", "") or any(k in os.environ for k in _ENV_KNOBS):
-        return "the environment sets glibc's malloc thresholds"
+        return "the environment sets glibc's malloc options"
     return None
 
 
