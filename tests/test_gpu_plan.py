@@ -14,6 +14,7 @@ carries 64 MiB with the working tree (30.7 MiB, 2026-11-28) and .whl/, so the ro
 from __future__ import annotations
 
 import sys
+from dataclasses import replace
 from pathlib import Path
 
 import pytest
@@ -155,14 +156,17 @@ def test_carry_in_slot_order_within_the_room():
 
 def test_a_follow_on_starts_the_next_runs_only_where_the_first_calls_could_all_finish():
     """paper_vitfly (the vitfly arm flies its best epoch, so best.* adds 2 bytes a parameter): its first slot starts
-    ViT+LSTM and ViT (29,561,191 + 25,750,487 bytes home of 62,914,560; LSTMnet's 24,504,088 no more). Should both
-    finish in the first call, the follow-on starts LSTMnet (train.slot_order; UNet+LSTM is one of the arm's
-    train.cpu_models), ResNet-18 (93.3e6, cannot travel) not beside it. The paper arm's slot carries
-    ViT+LSTM with 93 epochs left at 40.5 s: it cannot finish, so there is no such follow-on."""
+    ViT+LSTM and ViT (29,561,191 + 25,750,487 bytes home of 62,914,560; LSTMnet's 24,504,088 no more). Were LSTMnet
+    trained on the card (the preset trains it on a CPU, train.cpu_models, as UNet+LSTM), then should both finish in
+    the first call, the follow-on starts LSTMnet (train.slot_order), ResNet-18 (93.3e6, cannot travel) not beside
+    it; as the preset is, nothing is left for a follow-on. The paper arm's slot carries ViT+LSTM with 93 epochs
+    left at 40.5 s: it cannot finish, so there is no such follow-on."""
     cfg = preset("paper_vitfly")
     slot = next_slot(cfg, rows(cfg), 60 * 2**20)
     assert labels(slot.start) == ["vit_lstm-state", "vit-state"] and slot.back_bytes == 29_561_191 + 25_750_487
-    after = slot_after(cfg, rows(cfg), slot, 60 * 2**20)
+    assert slot_after(cfg, rows(cfg), slot, 60 * 2**20) is None
+    on_card = replace(cfg, train=replace(cfg.train, cpu_models=["convnet", "unet_lstm"], draws={}))
+    after = slot_after(on_card, rows(on_card), next_slot(on_card, rows(on_card), 60 * 2**20), 60 * 2**20)
     assert labels(after.start) == ["lstmnet-state"] and after.back_bytes == 24_504_088
     assert "cannot travel" in after.wait["resnet18-state"]
     paper = preset("paper")
