@@ -157,7 +157,9 @@ def park(cfg, r, dst: Path, moments: str) -> int:
     dst.mkdir(parents=True)
     flown = flown_checkpoint(cfg, r)
     if flown is not None:
-        checkpoint_files.write(slim(flown), dst, BEST)
+        # a finished run keeps the very weights it flew (fp16 from a slot, fp32 where it trained here): rounded,
+        # one trial in eight to one in four flies otherwise, so its published outcomes would not come back
+        checkpoint_files.write(slim(flown, half=r.state != "done"), dst, BEST)
     if r.state == "done":
         done = json.loads((run / "done.json").read_text())
         (dst / "done.json").write_text(json.dumps({**done, "checkpoint": BEST}) + "\n")
@@ -215,6 +217,9 @@ def write_carry(cfg, rows: list, slot, carry_dir: Path, room: int) -> None:
             print(f"  kept as it was: {r.label} (further along in {carry_dir.name}/ than here; restore it to go on)")
             continue
         if r.folder is None:
+            continue
+        if not here:  # in its first epoch here (vitfly reproduce holds it): no checkpoint yet
+            print(f"  not yet: {r.label} (no epoch has ended here, nothing to carry)")
             continue
         moments = slot.moments.get(r.label, "fp32")
         if old is not None and r.state != "done" and carried_epochs(old) == here:

@@ -230,9 +230,9 @@ def copy_run(src: Path, dst: Path) -> None:
     shutil.copytree(src, dst)
 
 
-def slim(src: Path) -> dict:
+def slim(src: Path, half: bool = True) -> dict:
     """Checkpoint ``src`` without optimiser/loop state, its state dict only the network's weights, floating ones
-    in fp16."""
+    in fp16 (``half=False``: as they are)."""
     import torch
 
     from vitfly.zoo.checkpoint import NET_PREFIX, network_from_checkpoint_dict
@@ -242,7 +242,10 @@ def slim(src: Path) -> dict:
     for key in DROPPED_KEYS:
         obj.pop(key, None)
     net = network_from_checkpoint_dict(obj, str(src))
-    obj["state_dict"] = {NET_PREFIX + k: v for k, v in fp16_state_dict(net, str(src)).items()}
+    if half:
+        obj["state_dict"] = {NET_PREFIX + k: v for k, v in fp16_state_dict(net, str(src)).items()}
+    else:  # the network's tensors as stored, their dtypes kept
+        obj["state_dict"] = {NET_PREFIX + k: obj["state_dict"][NET_PREFIX + k] for k in net.state_dict()}
     return obj
 
 

@@ -374,10 +374,16 @@ def test_runs_outlive_the_session_in_the_carry(tmp_path, data, two_epochs, capsy
         csv.DictWriter(f, fieldnames=header).writerow({"epoch": 1, "step": 99})
 
     capsys.readouterr()
-    assert gpu.main(["carry", *common, "--run-dir", str(home), "--carry-dir", str(carry)]) == 0
+    holder = Holder(home / "train" / "vit_lstm-state")  # vitfly reproduce in its first epoch here: no checkpoint
+    try:
+        assert gpu.main(["carry", *common, "--run-dir", str(home), "--carry-dir", str(carry)]) == 0
+    finally:
+        holder.release()
     out = capsys.readouterr().out
     assert "carries: convnet-state" in out and "kept: convnet-nostate (unfinished, fp32 moments)" in out
     kept = carry / "tiny"
+    assert "not yet: vit_lstm-state (no epoch has ended here" in out and not (kept / "vit_lstm-state").exists()
+    shutil.rmtree(home / "train" / "vit_lstm-state")  # stopped before its first epoch's end
     files = sorted(p.name for p in (kept / "convnet-state").iterdir())
     assert files == ["best.json", "best.safetensors", "cost.json", "data.json", "hparams.yaml", "last.json",
                      "last.safetensors.bpz", "metrics.csv", "split.json", "unfinished.json"]  # last.* squeezed
@@ -451,9 +457,11 @@ def test_runs_outlive_the_session_in_the_carry(tmp_path, data, two_epochs, capsy
     assert not (third / "train" / "convnet-state" / "stowed.json").exists()
     done = json.loads((third / "train" / "convnet-state" / "done.json").read_text())
     assert Path(done["checkpoint"]) == (third / "train" / "convnet-state" / "checkpoints" / "best.ckpt").resolve()
-    flown = load_network(new / "train" / "convnet-state" / "checkpoints" / "best.ckpt").state_dict()
-    for name, value in load_network(done["checkpoint"]).state_dict().items():
-        assert torch.equal(value, flown[name]), name
+    for label in ("convnet-state", "convnet-nostate"):  # the weights each flew: fp16 from the slot, fp32 from here
+        flown = load_network(new / "train" / label / "checkpoints" / "best.ckpt").state_dict()
+        done_there = json.loads((third / "train" / label / "done.json").read_text())
+        for name, value in load_network(done_there["checkpoint"]).state_dict().items():
+            assert torch.equal(value, flown[name]), (label, name)
     stage, callbacks = train_callbacks(train_stage(cfg, "convnet", True), cfg, "test")
     capsys.readouterr()
     stage_train(stage, data, third / "train" / "convnet-state", 1, progress=False, callbacks=callbacks)
