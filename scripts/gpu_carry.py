@@ -15,8 +15,8 @@ included, within 64 MiB a call:
   0.82 of the bytes with fp32 moments, 0.74 with bf16), ``best.*`` where the preset flies the best epoch
   (network weights in fp16), ``unfinished.json`` (epochs, data hash, slots) and the run's metrics, split, cost,
   hparams and data record;
-- a finished run: ``best.*``, the checkpoint it flies (network weights in fp16, as the shipped weights and as
-  a run returned by a slot), ``done.json`` and the same run files.
+- a finished run: ``best.*``, the checkpoint it flies, with the very weights it flew (fp16 as a slot returns
+  them, fp32 where it trained here), ``done.json`` and the same run files.
 
 The data never travels: every machine collects it again (deterministic, ``physics: native``), and each run's
 data hash is checked against it before anything resumes or is taken as done.
