@@ -13,8 +13,9 @@ included, within 64 MiB a call:
   epoch's resume state, lean (fp32 weights, Adam's moments in fp32 where they fit and in bf16 where they do not:
   an inexact resume), its tensors squeezed losslessly (``last.safetensors.bpz``, ``scripts/gpu_squeeze.py``:
   0.82 of the bytes with fp32 moments, 0.74 with bf16), ``best.*`` where the preset flies the best epoch
-  (network weights in fp16), ``unfinished.json`` (epochs, data hash, slots) and the run's metrics, split, cost,
-  hparams and data record;
+  (its network weights as stored: fp16 as a slot returns them, fp32 where it trained here, so a run finished in
+  a new checkout flies the weights an uninterrupted run would), ``unfinished.json`` (epochs, data hash, slots)
+  and the run's metrics, split, cost, hparams and data record;
 - a finished run: ``best.*``, the checkpoint it flies, with the very weights it flew (fp16 as a slot returns
   them, fp32 where it trained here), ``done.json`` and the same run files.
 
@@ -157,9 +158,10 @@ def park(cfg, r, dst: Path, moments: str) -> int:
     dst.mkdir(parents=True)
     flown = flown_checkpoint(cfg, r)
     if flown is not None:
-        # a finished run keeps the very weights it flew (fp16 from a slot, fp32 where it trained here): rounded,
-        # one trial in eight to one in four flies otherwise, so its published outcomes would not come back
-        checkpoint_files.write(slim(flown, half=r.state != "done"), dst, BEST)
+        # every run keeps its best weights as stored (fp16 from a slot, fp32 where it trained here): rounded, one
+        # trial in eight to one in four flies otherwise, so a finished run's published outcomes would not come
+        # back, and an unfinished one whose best epoch stays best would finish with other weights than it trained
+        checkpoint_files.write(slim(flown, half=False), dst, BEST)
     if r.state == "done":
         done = json.loads((run / "done.json").read_text())
         (dst / "done.json").write_text(json.dumps({**done, "checkpoint": BEST}) + "\n")

@@ -3,29 +3,30 @@ which runs it starts (``scripts/gpu.py status`` prints it, ``scripts/gpu.py carr
 
 What a slot does not finish comes home as a resume state, and the next slot must carry it back: the device tool
 sends the working tree, carry/ and .whl/, 64 MiB in all. Travelling light (``scripts/gpu_travel.py``) the tree is
-2.1 MiB without carry/: the shipped weights, the docs and the carried runs that do not go to this slot (trained
-on a CPU, or finished) stay here, so the carry holds what the rest leaves. A carried state is lean
+2.1 MiB without carry/: the shipped weights, the docs and the carried runs that do not go to this slot (trained on
+a CPU, or finished) stay here, so the carry holds what the rest leaves. A carried state is lean
 (``scripts/gpu_carry.py``): last.* (fp32 weights and Adam's moments, in fp32 where they fit, else in bf16: an
-inexact resume; squeezed losslessly, ``scripts/gpu_squeeze.py``), and best.* in fp16 only where the preset flies
-the best epoch. So a slot carries the unfinished runs (``train.slot_order`` first) within that room, as many as
-fit in bf16 and then fp32 for those the room still holds, and starts runs not started yet, in the same order,
-only while the states expected home still fit it: a carried run that will not finish in this slot (its last
-slot's epoch time says so) counts with its size, a new run with its state's size estimated from its parameter
-count. A run whose state could never travel (ResNet-18's) starts only alone, and must finish inside the command.
-Runs of ``train.cpu_models`` train on a CPU and are left out, as are runs being trained here (``vitfly
-reproduce`` resumes them; ``status`` leaves out a run a process here trains now, ``RunState.here_now``).
-"""
+inexact resume; squeezed losslessly, ``scripts/gpu_squeeze.py``), and best.* only where the preset flies the best
+epoch (fp16 from a slot, fp32 for runs of ``train.cpu_models``). So a slot carries the unfinished runs
+(``train.slot_order`` first) within that room, as many as fit in bf16 and then fp32 for those the room still holds,
+and starts runs not started yet, in the same order, only while the states expected home still fit it: a carried run
+that will not finish in this slot (its last slot's epoch time says so) counts with its size, a new run with its
+state's size estimated from its parameter count. A run whose state could never travel (ResNet-18's) starts only
+alone, and must finish inside the command. Runs of ``train.cpu_models`` train on a CPU and are left out, as are
+runs being trained here (``vitfly reproduce`` resumes them; ``status`` leaves out a run a process here trains now,
+``RunState.here_now``)."""
 
 from __future__ import annotations
 
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
-# a carried state: last.*'s fp32 weights and Adam's two moments per parameter (best.* adds 2 where it is kept)
+# a carried state: last.*'s fp32 weights and Adam's two moments per parameter (best.* adds BEST_BYTES_PER_PARAM)
 STATE_BYTES_PER_PARAM = {"fp32": 4 + 2 * 4, "bf16": 4 + 2 * 2}
 # last.* travels squeezed (scripts/gpu_squeeze.py): measured 0.818-0.829 of its bytes with fp32 moments and
 # 0.734-0.749 with bf16 (ViT+LSTM after 7 epochs, LSTMnet and ConvNet after 100); planned with 3 points to spare
 SQUEEZED = {"fp32": 0.85, "bf16": 0.78}
+BEST_BYTES_PER_PARAM = {"slot": 2, "cpu": 4}  # best.* as trained: fp16 from a slot, fp32 from a CPU run
 FOLDER_BYTES = 192 * 1024  # the rest of a run folder: checkpoint headers, metrics, split, marker (0.1-0.2 MiB
 # above the tensors, benchmarks/resume_state_size.py)
 MOMENTS = {"auto": ("fp32", "bf16"), "fp32": ("fp32",), "bf16": ("bf16",)}  # what a carry may use, best first
@@ -89,11 +90,13 @@ def max_epochs(cfg, run) -> int:
 
 def state_bytes(cfg, run, moments: str) -> int:
     """The carried resume state of ``run``, estimated from its network's parameter count: last.* squeezed and,
-    where the preset flies the best epoch (``select: best``), best.* in fp16 (``scripts/gpu_carry.py``)."""
+    where the preset flies the best epoch (``select: best``), best.* as trained: fp16 from a slot, fp32 for a run
+    of ``train.cpu_models`` (``scripts/gpu_carry.py``)."""
     from scripts.gpu_preset import flies_best
 
     n = parameters(cfg, run)
-    return int(n * STATE_BYTES_PER_PARAM[moments] * SQUEEZED[moments]) + n * 2 * flies_best(cfg, run) + FOLDER_BYTES
+    best = BEST_BYTES_PER_PARAM["cpu" if run.model in cfg.train.cpu_models else "slot"] * flies_best(cfg, run)
+    return int(n * STATE_BYTES_PER_PARAM[moments] * SQUEEZED[moments]) + n * best + FOLDER_BYTES
 
 
 def epochs_per_slot(marker: dict, train_s: float) -> int | None:

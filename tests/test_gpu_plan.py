@@ -61,6 +61,12 @@ def test_state_bytes_from_the_parameter_count():
     # last.* squeezed: 0.85 of 12 bytes a parameter (fp32 moments), 0.78 of 8 (bf16); no best.* (select: last)
     assert state_bytes(cfg, vit_lstm, "fp32") == 36_349_362 + 196_608 == 36_545_970
     assert state_bytes(cfg, vit_lstm, "bf16") == 22_237_257 + 196_608 == 22_433_865
+    # the vitfly arm flies the best epoch: best.* beside it, fp16 from a slot, fp32 for a run of train.cpu_models
+    vitfly = preset("paper_vitfly")
+    vit_lstm, unet_lstm = (next(r for r in runs(vitfly) if r.dir_name == f"{m}-state")
+                           for m in ("vit_lstm", "unet_lstm"))
+    assert state_bytes(vitfly, vit_lstm, "fp32") == 36_349_362 + 2 * 3_563_663 + 196_608 == 43_673_296
+    assert state_bytes(vitfly, unet_lstm, "fp32") == 30_149_384 + 4 * 2_955_822 + 196_608 == 42_169_280
 
 
 def test_paper_first_slot_starts_the_lead_and_leaves_the_cpu_models_to_the_cpu():

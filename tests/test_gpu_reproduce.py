@@ -420,6 +420,11 @@ def test_runs_outlive_the_session_in_the_carry(tmp_path, data, two_epochs, capsy
     assert gpu.main(["restore", *common, "--run-dir", str(new), "--carry-dir", str(carry)]) == 0
     resumed = new / "train" / "convnet-nostate"
     assert sorted(p.name for p in (resumed / "checkpoints").iterdir()) == ["best.ckpt", "last.ckpt"]
+    # its best epoch comes back as trained (fp32), not rounded: finished without a better epoch, it flies that
+    trained_best = load_network(home / "train" / "convnet-nostate" / "checkpoints" / "best.ckpt").state_dict()
+    for name, value in load_network(resumed / "checkpoints" / "best.ckpt").state_dict().items():
+        assert value.dtype == trained_best[name].dtype and torch.equal(value, trained_best[name]), name
+    assert any(v.dtype == torch.float32 and not torch.equal(v, v.half().float()) for v in trained_best.values())
     stage, callbacks = train_callbacks(train_stage(cfg, "convnet", False), cfg, "test")
     stage_train(stage, data, resumed, 1, progress=False, callbacks=callbacks)
     reference = tmp_path / "reference"
