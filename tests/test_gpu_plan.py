@@ -76,8 +76,8 @@ def test_paper_first_slot_starts_the_lead_and_leaves_the_cpu_models_to_the_cpu()
     assert slot.back_bytes == 22_433_865  # carried back next time with bf16 moments
     # train.cpu_models in slot order (UNet+LSTM before LSTMnet), the draws last
     assert labels(slot.on_cpu) == ["unet_lstm-state", "lstmnet-state", "unet_lstm-nostate", "lstmnet-nostate",
-                                   "lstmnet-state-s1", "convnet-state-s1", "convnet-state-s2", "lstmnet-nostate-s1",
-                                   "convnet-nostate-s1", "convnet-nostate-s2"]
+                                   "unet_lstm-state-s1", "lstmnet-state-s1", "convnet-state-s1", "convnet-state-s2",
+                                   "lstmnet-nostate-s1", "convnet-nostate-s1", "convnet-nostate-s2"]
     assert "would not fit the next carry" in slot.wait["vit-state"]  # 22.43e6 + 19.55e6 > 33.55e6
     assert list(slot.wait) == ["vit-state", "vit_lstm-nostate", "vit-nostate"]
 
