@@ -621,10 +621,17 @@ def status(args: argparse.Namespace) -> int:
 
     cfg = load_cfg(args)
     rows = run_states(cfg)
+    carry_dir = preset_carry(args.carry_dir, cfg.preset)
+    # a new checkout before `restore`: its kept runs look new here, and a slot would train them again from scratch
+    kept = {r.label for r in rows if r.state == "not started" and (carry_dir / r.label).is_dir()}
+    here = carry_dir.relative_to(ROOT) if carry_dir.is_relative_to(ROOT) else carry_dir
     width = max(len(r.label) for r in rows)
     for r in rows:
-        print(f"{r.label:<{width}}  {r.text}" + (f" ({mib(r.size)} here)" if r.size else ""))
-    carry_dir = preset_carry(args.carry_dir, cfg.preset)
+        text = f"kept in {here / r.label}, not restored here" if r.label in kept else r.text
+        print(f"{r.label:<{width}}  {text}" + (f" ({mib(r.size)} here)" if r.size else ""))
+    if kept and not getattr(args, "write_carry", False):  # `carry` leaves kept runs as they are: no harm to write
+        raise SystemExit(f"status: {here} keeps {len(kept)} run{'s' * (len(kept) != 1)} that {cfg.out}/train lacks, "
+                         f"so no slot can be planned; first: python3 scripts/gpu.py restore --preset {cfg.preset}")
     # as the call travels: light (scripts/gpu_travel.py), the shipped weights, the docs, the other presets' carries
     # and the carried runs of no slot left here; the room is what the code and .whl/ leave of the call's 64 MiB
     light = is_light(ROOT)
@@ -673,9 +680,12 @@ def status(args: argparse.Namespace) -> int:
             from scripts.gpu_history import report
 
             weighed = report(ROOT)
+    if kept:
+        print(f"  no slot planned: {here} keeps {len(kept)} run{'s' * (len(kept) != 1)} not restored here "
+              f"(python3 scripts/gpu.py restore --preset {cfg.preset})")
+        return 0
     if not (slot.carry or slot.start):
         return 0
-    here = carry_dir.relative_to(ROOT) if carry_dir.is_relative_to(ROOT) else carry_dir
     if slot.carry and not getattr(args, "write_carry", False):
         print(f"  first, here: python3 scripts/gpu.py carry --preset {cfg.preset} (into {here}/; the call sends it "
               "uncommitted: commit the carry once, when the slot is home)")

@@ -146,7 +146,8 @@ def test_status_asks_for_two_cpu_processes_where_two_cpu_runs_wait(tmp_path, cap
     in docs/reproduce.md): with two or more of them not started, status's CPU line says to run the command twice
     with one thread each; with one left, once, as it is."""
     gpu = load_script("gpu")
-    assert gpu.main(["status", "--preset", "paper", "--run-dir", str(tmp_path / "empty")]) == 0
+    none = ["--carry-dir", str(tmp_path / "no_carry")]  # not the repository's carry/paper, which restore would need
+    assert gpu.main(["status", "--preset", "paper", "--run-dir", str(tmp_path / "empty"), *none]) == 0
     line = next(x for x in capsys.readouterr().out.splitlines() if "on a CPU (train.cpu_models)" in x)
     assert line.endswith("--stages train --threads 1, twice side by side (each takes a run the other is not on)")
     config = yaml.safe_load((REPO / "configs" / "reproduce.yaml").read_text())
@@ -154,9 +155,31 @@ def test_status_asks_for_two_cpu_processes_where_two_cpu_runs_wait(tmp_path, cap
                                                cpu_models=["lstmnet"], slot_order=["vit"])
     one = tmp_path / "one.yaml"
     one.write_text(yaml.safe_dump(config))
-    assert gpu.main(["status", "--config", str(one), "--preset", "paper", "--run-dir", str(tmp_path / "empty")]) == 0
+    assert gpu.main(["status", "--config", str(one), "--preset", "paper", "--run-dir", str(tmp_path / "empty"),
+                     *none]) == 0
     line = next(x for x in capsys.readouterr().out.splitlines() if "on a CPU (train.cpu_models)" in x)
     assert line.endswith("--models lstmnet --stages train")
+
+
+def test_status_refuses_to_plan_before_the_kept_runs_are_restored(tmp_path, capsys):
+    """In a new checkout carry/<preset> holds the kept runs and the run directory nothing: planned so, every kept
+    run would look new and a slot would train it again from scratch. status names them and asks for restore;
+    carry (which leaves kept runs as they are) writes, and plans no slot."""
+    gpu = load_script("gpu")
+    kept = tmp_path / "carry" / "paper" / "convnet-state"
+    shutil.copytree(REPO / "carry" / "paper" / "convnet-state", kept)  # a finished run, as committed
+    before = {p.name: p.read_bytes() for p in kept.iterdir()}
+    common = ["--preset", "paper", "--run-dir", str(tmp_path / "empty"), "--carry-dir", str(tmp_path / "carry")]
+    with pytest.raises(SystemExit, match=r"keeps 1 run that .*/train lacks, so no slot can be planned; first: "
+                                         r"python3 scripts/gpu\.py restore --preset paper$"):
+        gpu.main(["status", *common])
+    listing = capsys.readouterr().out
+    assert re.search(r"^convnet-state +kept in .*carry/paper/convnet-state, not restored here$", listing, re.M)
+    assert re.search(r"^vit-state +not started$", listing, re.M) and "command:" not in listing
+    assert gpu.main(["carry", *common]) == 0
+    listing = capsys.readouterr().out
+    assert "no slot planned: " in listing and "command:" not in listing
+    assert {p.name: p.read_bytes() for p in kept.iterdir()} == before
 
 
 @pytest.fixture
