@@ -625,12 +625,13 @@ def status(args: argparse.Namespace) -> int:
     # a new checkout before `restore`: its kept runs look new here, and a slot would train them again from scratch
     kept = {r.label for r in rows if r.state == "not started" and (carry_dir / r.label).is_dir()}
     here = carry_dir.relative_to(ROOT) if carry_dir.is_relative_to(ROOT) else carry_dir
+    unrestored = f"{here} keeps {len(kept)} run{'s' * (len(kept) != 1)}"
     width = max(len(r.label) for r in rows)
     for r in rows:
         text = f"kept in {here / r.label}, not restored here" if r.label in kept else r.text
         print(f"{r.label:<{width}}  {text}" + (f" ({mib(r.size)} here)" if r.size else ""))
     if kept and not getattr(args, "write_carry", False):  # `carry` leaves kept runs as they are: no harm to write
-        raise SystemExit(f"status: {here} keeps {len(kept)} run{'s' * (len(kept) != 1)} that {cfg.out}/train lacks, "
+        raise SystemExit(f"status: {unrestored} that {cfg.out}/train lacks, "
                          f"so no slot can be planned; first: python3 scripts/gpu.py restore --preset {cfg.preset}")
     # as the call travels: light (scripts/gpu_travel.py), the shipped weights, the docs, the other presets' carries
     # and the carried runs of no slot left here; the room is what the code and .whl/ leave of the call's 64 MiB
@@ -681,7 +682,7 @@ def status(args: argparse.Namespace) -> int:
 
             weighed = report(ROOT)
     if kept:
-        print(f"  no slot planned: {here} keeps {len(kept)} run{'s' * (len(kept) != 1)} not restored here "
+        print(f"  no slot planned: {unrestored} not restored here "
               f"(python3 scripts/gpu.py restore --preset {cfg.preset})")
         return 0
     if not (slot.carry or slot.start):
