@@ -28,6 +28,7 @@ from vitfly.workflows.pipeline import EvalStage, TrainStage
 
 PAPER_MODELS = ["convnet", "lstmnet", "unet_lstm", "vit", "vit_lstm"]
 STAGES = ("data", "train", "evaluate", "paths", "modular", "latency", "report")
+SWEEPS = ("spheres", "trees", "window", "ablation", "paths", "modular")  # OUT/eval/<sweep>
 
 
 @dataclass
@@ -123,6 +124,15 @@ class ReproduceLatency:
 
 
 @dataclass
+class ReproduceReport:
+    """What the report reads besides the run directory's own flights."""
+
+    published: dict[str, str] = field(default_factory=dict)  # sweep (spheres, trees, ..., modular) -> a published
+    # folder of this study (its outcomes.jsonl.gz, as `vitfly evaluate --merge` writes one into docs/), whose
+    # trials join OUT/eval/<sweep>'s: a new checkout reports the committed flights without flying them again
+
+
+@dataclass
 class ReproduceConfig:
     preset: str = "custom"  # the name recorded in the outputs (set from --preset)
     out: str = "runs/reproduce"
@@ -135,6 +145,7 @@ class ReproduceConfig:
     paths: ReproducePaths = field(default_factory=ReproducePaths)
     modular: ReproduceModular = field(default_factory=ReproduceModular)
     latency: ReproduceLatency = field(default_factory=ReproduceLatency)
+    report: ReproduceReport = field(default_factory=ReproduceReport)
 
     @property
     def out_dir(self) -> Path:
@@ -173,7 +184,7 @@ def load_reproduce_config(path: str | os.PathLike | None, preset: str | None = N
     data.update({k: v for k, v in (overrides or {}).items() if v is not None})
     sections = {}
     for name, cls in (("train", ReproduceTrain), ("evaluate", ReproduceEvaluate), ("paths", ReproducePaths),
-                      ("modular", ReproduceModular), ("latency", ReproduceLatency)):
+                      ("modular", ReproduceModular), ("latency", ReproduceLatency), ("report", ReproduceReport)):
         sections[name] = dataclass_from_dict(cls, data.pop(name, None) or {}, f"{source}: {name}")
     cfg = dataclasses.replace(dataclass_from_dict(ReproduceConfig, data, source), **sections)
     check_config(cfg, source)
@@ -206,6 +217,11 @@ def check_config(cfg: ReproduceConfig, source: str) -> None:
     if cfg.paths.repeats < 1 or cfg.paths.jitter_m < 0:
         raise VitflyError(f"{source}: paths.repeats must be >= 1 and paths.jitter_m >= 0")
     check_modular(cfg, source)
+    for sweep, folder in cfg.report.published.items():  # the report stage reads them (the GPU machine has no docs/)
+        if sweep not in SWEEPS:
+            raise VitflyError(f"{source}: report.published has {sweep!r}; expected sweeps: {', '.join(SWEEPS)}")
+        if not isinstance(folder, str):
+            raise VitflyError(f"{source}: report.published.{sweep} has {folder!r}; expected a folder's path")
     check_draws(cfg, source)
     check_slot_plan(cfg, source)
     for m in cfg.train.models:  # every recipe read (and checked) before anything runs

@@ -12,8 +12,11 @@ import os
 from pathlib import Path
 
 from vitfly.atomic import write_text
+from vitfly.errors import VitflyError
 from vitfly.workflows.reproduce_config import (
+    SWEEPS,
     ReproduceConfig,
+    Run,
     done_checkpoint,
     draw_groups,
     eval_stage,
@@ -50,11 +53,30 @@ def latency_markdown(results: list[dict]) -> str:
     return "\n".join(lines) + "\n"
 
 
-def _summary(directory: Path) -> tuple[list[dict], list] | tuple[None, None]:
+def study_label(policy: str) -> str:
+    """The study's label of a policy: a run folder's name flown by hand (``vitfly evaluate --name convnet-state``,
+    ``convnet-state-s1``) reads as the run's label (``convnet``, ``convnet-s1``); every other label is kept."""
+    try:
+        return Run.parse(policy).label
+    except VitflyError:
+        return policy
+
+
+def _summary(directory: Path, published: str | None = None) -> tuple[list[dict], list] | tuple[None, None]:
+    """The rows and records of one sweep: the run directory's flights, then a published folder's (``published``:
+    ``report.published.<sweep>``, labels read by ``study_label``) that the run directory does not hold; a label
+    flown with two setups is refused."""
     from vitfly.eval import records
     from vitfly.eval.aggregate import summarize
 
     recs = records.read_sweep(directory) if directory.is_dir() else []
+    if published is not None:
+        if not records.report_files(published):
+            raise VitflyError(f"report.published.{directory.name}: {published} holds no {records.OUTCOMES_FILE} and "
+                              "no trials*.jsonl (run from the root of a checkout of the repository, which has them)")
+        theirs = [dataclasses.replace(r, policy=study_label(r.policy)) for r in records.read_report_records(published)]
+        recs = records.merge_records([recs, theirs])
+        records.check_consistent(recs, f"report: {directory} and {published}")
     return (summarize(recs), recs) if recs else (None, None)
 
 
@@ -98,8 +120,8 @@ def _training_table(cfg: ReproduceConfig) -> str:
             epochs, steps = elsewhere["epochs"], elsewhere["steps"]
             wall += f" ({elsewhere['device']})"
         else:
-            saved = torch.load(d / "checkpoints" / "last.ckpt", map_location="cpu", weights_only=True) \
-                if (d / "checkpoints" / "last.ckpt").exists() else {}
+            last = d / "checkpoints" / "last.ckpt"  # a run restored from carry/ keeps only the weights it flies
+            saved = torch.load(last if last.exists() else ckpt, map_location="cpu", weights_only=True)
             epochs, steps = saved.get("epoch", -1) + 1, saved.get("global_step", "-")
         lines.append(f"| {run.label} | {epochs} | {steps} | {frames if frames is not None else '-'} "
                      f"| {wall} | {ckpt} |")
@@ -132,8 +154,8 @@ def stage_report(cfg: ReproduceConfig) -> dict:
     out, figures = cfg.out_dir, cfg.out_dir / "figures"
     rows: dict[str, list[dict] | None] = {}
     recs: dict[str, list] = {}
-    for name in ("spheres", "trees", "window", "ablation", "paths", "modular"):
-        rows[name], recs[name] = _summary(cfg.eval_dir(name))
+    for name in SWEEPS:
+        rows[name], recs[name] = _summary(cfg.eval_dir(name), cfg.report.published.get(name))
     draws = draw_groups(cfg)
     other_draws = {label for run, labels in draws.items() for label in labels if label != run}
     files: dict[str, Path] = {}
@@ -146,18 +168,21 @@ def stage_report(cfg: ReproduceConfig) -> dict:
         files["command_characteristics"] = paper_figures.command_figure(
             command_rows, figures / "command_characteristics.png")
     lateral = {}
-    if recs["paths"]:
+    # the path figures need flown paths, which a published folder's records do not keep
+    paths = [r for r in recs["paths"] or [] if r.has_path]
+    if paths:
         plan = paths_plan(cfg)
-        scene = scene_of(recs["paths"], "spheres", plan.preset, plan.scene_seed)
+        scene = scene_of(paths, "spheres", plan.preset, plan.scene_seed)
         title = (f"spheres scene seed {plan.scene_seed}, {plan.speed:g} m/s, {plan.repeats} repeats from starts "
                  f"within ±{plan.jitter_m:g} m: mean path, band ±0.1 σ (top-down, then side)")
-        files["paths_fixed_scene"] = paper_figures.mean_paths_figure(
-            recs["paths"], figures / "paths_fixed_scene.png", scene, title)
+        files["paths_fixed_scene"] = paper_figures.mean_paths_figure(paths, figures / "paths_fixed_scene.png",
+                                                                     scene, title)
         files["paths_fixed_scene_3d"] = paper_figures.mean_paths_3d_figure(
-            recs["paths"], figures / "paths_fixed_scene_3d.png", scene)
-        lateral = {p: v["max_lateral"] for p, v in paper_figures.mean_paths(recs["paths"]).items()}
-    if recs["window"]:  # each run's own draw, as the other figures
-        seed, window_recs = scene_for_paths([r for r in recs["window"] if r.policy not in other_draws], "window")
+            paths, figures / "paths_fixed_scene_3d.png", scene)
+        lateral = {p: v["max_lateral"] for p, v in paper_figures.mean_paths(paths).items()}
+    window = [r for r in recs["window"] or [] if r.has_path and r.policy not in other_draws]  # each run's own draw
+    if window:
+        seed, window_recs = scene_for_paths(window, "window")
         files["window_paths"] = plot_paths(window_recs, figures / "window_paths.png",
                                            scene_of(window_recs, "window", window_recs[0].preset, seed),
                                            title=f"window at {window_recs[0].speed:g} m/s, scene seed {seed}")
