@@ -120,3 +120,21 @@ def test_an_unknown_published_sweep_is_one_line(tmp_path):
     path.write_text(yaml.safe_dump(data))
     with pytest.raises(VitflyError, match="report.published has 'forest'; expected sweeps: spheres, trees"):
         load_reproduce_config(path, "tiny")
+
+
+def test_a_restored_run_s_training_row_reads_the_checkpoint_it_flies(tmp_path):
+    """`gpu.py restore` brings a finished run back with the weights it flies and no last.ckpt: its epochs and
+    optimiser steps come from that checkpoint (the paper arm's 100 epochs of 470 one-trajectory steps)."""
+    import torch
+
+    from vitfly.workflows.reproduce_report import _training_table
+
+    cfg = paper_config(tmp_path / "study")
+    run = cfg.train_dir("convnet", True)
+    (run / "checkpoints").mkdir(parents=True)
+    torch.save({"epoch": 99, "global_step": 47_000, "state_dict": {}}, run / "checkpoints" / "best.ckpt")
+    (run / "done.json").write_text(json.dumps({"checkpoint": str(run / "checkpoints" / "best.ckpt")}))
+    (run / "cost.json").write_text(json.dumps({"wall_s": 1590.0}))
+    rows = {line.split("|")[1].strip(): line for line in _training_table(cfg).splitlines()[2:]}
+    assert rows["convnet"].startswith("| convnet | 100 | 47000 | - | 26.5 |")
+    assert rows["lstmnet"] == "| lstmnet | - | - | - | - | not trained |"
